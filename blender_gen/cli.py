@@ -1,0 +1,217 @@
+"""`iae-gen`: the dataset generator's command line."""
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+
+import click
+
+from .camera import CameraRanges
+from .dataset import DatasetError
+from .generate import GenerationError, generate, merge
+from .recipe import Recipe
+
+MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+
+
+def _fail(msg: str) -> None:
+    raise click.ClickException(msg)
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
+    if not m:
+        _fail(f"--resolution {text!r}: expected WIDTHxHEIGHT, e.g. 512x256")
+    w, h = int(m.group(1)), int(m.group(2))
+    if not (8 <= w <= 8192 and 8 <= h <= 8192):
+        _fail(f"--resolution {text!r}: width and height must be between 8 and 8192 pixels")
+    return w, h
+
+
+def check_envmap(path: str) -> str:
+    """Early, Blender-free check that an environment map is a readable .hdr/.exr file."""
+    p = Path(path)
+    if not p.is_file():
+        _fail(f"--envmap {path}: no such file")
+    suffix = p.suffix.lower()
+    if suffix not in (".hdr", ".exr"):
+        _fail(f"--envmap {path}: expected an equirectangular .hdr or .exr file")
+    with open(p, "rb") as fh:
+        head = fh.read(16)
+    if suffix == ".hdr" and not head.startswith(b"#?"):
+        _fail(f"--envmap {path}: not a Radiance HDR file (no '#?' header)")
+    if suffix == ".exr" and not head.startswith(EXR_MAGIC):
+        _fail(f"--envmap {path}: not an OpenEXR file (bad magic number)")
+    return str(p.resolve())
+
+
+def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
+    from .cars import load_catalogue, select_cars
+
+    out, names = [], []
+    for token in (t.strip() for chunk in tokens for t in chunk.split(",")):
+        if not token:
+            continue
+        if Path(token).suffix.lower() in MODEL_SUFFIXES or "/" in token:
+            p = Path(token)
+            if not p.is_file():
+                _fail(f"--cars {token}: no such model file")
+            if p.suffix.lower() not in MODEL_SUFFIXES:
+                _fail(f"--cars {token}: unsupported model format; expected one of {MODEL_SUFFIXES}")
+            if rules is None:
+                _fail(f"--cars {token}: a model file needs --car-rules FILE to map its objects to parts")
+            out.append(str(p.resolve()))
+        else:
+            names.append(token)
+            out.append(token)
+    if names:
+        try:
+            select_cars(load_catalogue(), ",".join(names))
+        except ValueError as exc:
+            _fail(str(exc))
+    if not out:
+        _fail("--cars: no car given")
+    return tuple(out)
+
+
+def _common_options(fn):
+    opts = [
+        click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
+                     help="Dataset folder (created; re-running resumes it)."),
+        click.option("--count", required=True, type=int, help="Number of samples in the dataset."),
+        click.option("--seed", default=0, show_default=True, type=int, help="Recipe seed: same seed, same dataset."),
+        click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels."),
+        click.option("--cars", "cars", multiple=True,
+                     help="Catalogue selectors (procedural, procedural:train, procedural:heldout, a category, "
+                          "model names; comma-separated or repeated) or model files with --car-rules."),
+        click.option("--car-rules", type=click.Path(dir_okay=False), default=None,
+                     help="TOML rules mapping a model file's objects/materials/palette regions to parts."),
+        click.option("--envmap", "envmaps", multiple=True,
+                     help="Equirectangular .hdr/.exr (repeatable); default: the built-in procedural skies."),
+        click.option("--samples", default=None, type=int, help="Cycles samples per pixel."),
+        click.option("--workers", default=1, show_default=True, type=int, help="Blender processes rendering in parallel."),
+        click.option("--shard", default=None, help="I/N: render only samples with index %% N == I (batch schedulers)."),
+        click.option("--radius-min", default=CameraRanges.radius_min, show_default=True, type=float,
+                     help="Minimum horizontal camera distance from the car centre (m)."),
+        click.option("--radius-max", default=CameraRanges.radius_max, show_default=True, type=float,
+                     help="Maximum horizontal camera distance (m); the paper uses 8."),
+        click.option("--height-min", default=CameraRanges.height_min, show_default=True, type=float),
+        click.option("--height-max", default=CameraRanges.height_max, show_default=True, type=float,
+                     help="Maximum camera height (m); the paper uses 3."),
+        click.option("--focal-range", default=f"{CameraRanges.focal_min:g}-{CameraRanges.focal_max:g}",
+                     show_default=True, help="Focal length range in mm (36 mm sensor)."),
+        click.option("--min-coverage", default=CameraRanges.min_coverage, show_default=True, type=float,
+                     help="Minimum fraction of the frame the car's bounding box must cover."),
+        click.option("--quiet", is_flag=True, help="No progress bar."),
+    ]
+    for opt in reversed(opts):
+        fn = opt(fn)
+    return fn
+
+
+def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -> Recipe:
+    if o["count"] < 1:
+        _fail(f"--count {o['count']}: expected at least 1")
+    if o["workers"] < 1:
+        _fail(f"--workers {o['workers']}: expected at least 1")
+    samples = default_samples if o["samples"] is None else o["samples"]
+    if samples < 1:
+        _fail(f"--samples {samples}: expected at least 1")
+    w, h = parse_resolution(o["resolution"])
+    m = re.fullmatch(r"\s*([\d.]+)\s*-\s*([\d.]+)\s*", o["focal_range"])
+    if not m:
+        _fail(f"--focal-range {o['focal_range']!r}: expected MIN-MAX in mm, e.g. 24-60")
+    ranges = CameraRanges(radius_min=o["radius_min"], radius_max=o["radius_max"], height_min=o["height_min"],
+                          height_max=o["height_max"], focal_min=float(m.group(1)), focal_max=float(m.group(2)),
+                          min_coverage=o["min_coverage"])
+    try:
+        ranges.validate()
+    except ValueError as exc:
+        _fail(str(exc))
+    rules = o["car_rules"]
+    if rules is not None and not Path(rules).is_file():
+        _fail(f"--car-rules {rules}: no such file")
+    cars = check_cars(o["cars"] or (default_cars,), rules)
+    envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or ("procedural",)
+    return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
+                  car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
+                  camera=ranges)
+
+
+def _run(recipe: Recipe, o: dict) -> None:
+    try:
+        info = generate(recipe, o["out"], o["count"], workers=o["workers"], shard=o["shard"], progress=not o["quiet"])
+    except (GenerationError, DatasetError, ValueError, RuntimeError) as exc:
+        _fail(str(exc).splitlines()[0] if str(exc) else repr(exc))
+    n, secs = info["_rendered"], info["_seconds"]
+    rate = f", {n / secs:.2f} samples/s" if n and secs > 0 else ""
+    click.echo(f"{o['out']}: {info['count']} samples ({n} rendered now in {secs:.1f} s{rate})"
+               + ("" if info["complete"] else "; INCOMPLETE"))
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def main() -> None:
+    """Synthetic data for the Intrinsic Autoencoder: intrinsics and Cycles PBR datasets."""
+
+
+@main.command()
+@_common_options
+def intrinsics(**o) -> None:
+    """Render the synthetic intrinsic maps M_s (normal, albedo, reflection, mask)."""
+    _run(_build_recipe("intrinsics", "procedural:train", 1, o), o)
+
+
+@main.command()
+@_common_options
+def pbr(**o) -> None:
+    """Render Cycles path-traced images with their ground-truth intrinsics."""
+    _run(_build_recipe("pbr", "procedural:heldout", 64, o), o)
+
+
+@main.command("inspect")
+@click.argument("root", type=click.Path(path_type=Path))
+@click.option("--grid", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Preview grid PNG (default: ROOT/previews/inspect_grid.png).")
+@click.option("--grid-samples", default=6, show_default=True, type=int)
+@click.option("--max-stats", default=None, type=int, help="Gather value ranges over the first N samples only.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@click.option("--quiet", is_flag=True)
+def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int | None, as_json: bool,
+                quiet: bool) -> None:
+    """Summarise a dataset, verify every checksum, write a preview grid; exit 1 if anything is wrong."""
+    from .inspect import format_summary, inspect_dataset, preview_grid
+
+    try:
+        summary = inspect_dataset(root, max_stats=max_stats, progress=not quiet)
+        if summary["samples"]:
+            summary["grid"] = str(preview_grid(root, grid or Path(root) / "previews" / "inspect_grid.png", grid_samples))
+    except DatasetError as exc:
+        _fail(str(exc))
+    click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
+    if summary.get("grid") and not as_json:
+        click.echo(f"preview   {summary['grid']}")
+    if not summary["complete"]:
+        sys.exit(1)
+
+
+@main.command("merge")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.argument("shards", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--quiet", is_flag=True)
+def merge_cmd(out: Path, shards: tuple[Path, ...], quiet: bool) -> None:
+    """Join shard folders (from --shard I/N runs of one recipe) into one dataset."""
+    try:
+        info = merge(out, list(shards), progress=not quiet)
+    except (GenerationError, DatasetError) as exc:
+        _fail(str(exc))
+    msg = f"{out}: {info['count']} samples merged from {len(shards)} shard(s)"
+    if info["_missing"]:
+        msg += f"; {len(info['_missing'])} missing, e.g. {info['_missing'][:10]}"
+    click.echo(msg)
+
+
+if __name__ == "__main__":
+    main()

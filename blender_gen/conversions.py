@@ -1,0 +1,69 @@
+"""Colour and network-space conversions: the one place that defines them.
+
+Network space (DESIGN.md): normals as they are in [-1, 1]; albedo, reflection and rgb
+sRGB-encoded with the standard transfer function, clipped to [0, 1], mapped to [-1, 1].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# colour-science's IEC 61966-2-1 sRGB transfer functions; imported lazily because
+# `import colour` costs ~0.5 s and most processes touch only a few conversions.
+_colour = None
+
+
+def _cs():
+    global _colour
+    if _colour is None:
+        import colour  # noqa: PLC0415
+
+        _colour = colour
+    return _colour
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] -> linear."""
+    return np.asarray(_cs().models.eotf_sRGB(np.asarray(x, dtype=np.float64)))
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear -> sRGB-encoded, clipped to [0, 1] (HDR values saturate)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
+    return np.asarray(_cs().models.eotf_inverse_sRGB(x))
+
+
+COLOUR_LAYERS = ("albedo", "reflection", "rgb")
+
+
+def to_network(layer: str, x: np.ndarray) -> np.ndarray:
+    """A dataset layer (H, W, C) in its stored units -> network space [-1, 1], float32."""
+    if layer == "normal":
+        return np.clip(np.asarray(x, dtype=np.float32), -1.0, 1.0)
+    if layer in COLOUR_LAYERS:
+        return (linear_to_srgb(x) * 2.0 - 1.0).astype(np.float32)
+    if layer == "mask":
+        return (np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0) * 2.0 - 1.0)
+    raise ValueError(f"no network-space conversion for layer {layer!r}")
+
+
+def from_network(layer: str, x: np.ndarray) -> np.ndarray:
+    """Network space [-1, 1] -> the dataset's stored units (linear colour, raw normals)."""
+    x = np.asarray(x, dtype=np.float64)
+    if layer == "normal":
+        return np.clip(x, -1.0, 1.0).astype(np.float32)
+    if layer in COLOUR_LAYERS:
+        return srgb_to_linear(np.clip((x + 1.0) * 0.5, 0.0, 1.0)).astype(np.float32)
+    if layer == "mask":
+        return np.clip((x + 1.0) * 0.5, 0.0, 1.0).astype(np.float32)
+    raise ValueError(f"no network-space conversion for layer {layer!r}")
+
+
+def preview_srgb8(layer: str, x: np.ndarray) -> np.ndarray:
+    """A layer as an 8-bit sRGB picture for people: normals as (n + 1) / 2."""
+    if layer == "normal":
+        img = (np.clip(np.asarray(x, dtype=np.float64), -1, 1) + 1.0) * 0.5
+    elif layer in ("mask", "material"):
+        img = np.repeat(np.clip(np.asarray(x, dtype=np.float64), 0, 1), 3, axis=-1) if x.shape[-1] == 1 else x
+    else:
+        img = linear_to_srgb(x)
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

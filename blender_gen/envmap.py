@@ -1,0 +1,151 @@
+"""Environment maps: the built-in procedural HDR sky, and the equirectangular lookup.
+
+Arrays here are (H, W, 3) float32, row 0 at the top (zenith), linear HDR. The lookup
+follows Blender's Environment Texture convention exactly, so `reflection_reference`
+reproduces what the renderer's shader computes (tests compare the two).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+PROCEDURAL_PREFIX = "procedural:"
+DEFAULT_SKY_VARIANTS = 8
+
+
+def direction_to_uv(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Blender's equirectangular mapping; u right, v up (v = 1 at the zenith)."""
+    d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    u = 0.5 - np.arctan2(d[..., 1], d[..., 0]) / (2.0 * np.pi)
+    v = 0.5 + np.arcsin(np.clip(d[..., 2], -1.0, 1.0)) / np.pi
+    return u, v
+
+
+def uv_to_direction(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    u, v = np.broadcast_arrays(u, v)
+    phi = (0.5 - u) * 2.0 * np.pi
+    theta = (v - 0.5) * np.pi
+    return np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)], axis=-1)
+
+
+def rotate_z(d: np.ndarray, degrees: float) -> np.ndarray:
+    a = np.deg2rad(degrees)
+    c, s = np.cos(a), np.sin(a)
+    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
+
+
+def sample_equirect(env: np.ndarray, d: np.ndarray, rotation_deg: float = 0.0) -> np.ndarray:
+    """Bilinear lookup of `env` along world directions `d` (..., 3).
+
+    The map is turned by `rotation_deg` about +Z (content at azimuth a moves to a + rotation).
+    Pixel centres sit at (i + 0.5) / W as in Blender; u wraps, v clamps.
+    """
+    h, w, _ = env.shape
+    u, v = direction_to_uv(rotate_z(d, -rotation_deg))
+    x = u * w - 0.5
+    y = (1.0 - v) * h - 0.5  # rows run top-down here
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    xa, xb = x0 % w, (x0 + 1) % w
+    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
+    top = env[ya, xa] * (1 - fx) + env[ya, xb] * fx
+    bot = env[yb, xa] * (1 - fx) + env[yb, xb] * fx
+    return (top * (1 - fy) + bot * fy).astype(np.float32)
+
+
+def reflect(view: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Mirror the view ray (camera -> surface) about the unit normal."""
+    return view - 2.0 * np.sum(view * normal, axis=-1, keepdims=True) * normal
+
+
+def _periodic_noise(rng: np.random.Generator, h: int, w: int, cells_x: int, cells_y: int) -> np.ndarray:
+    """Smooth value noise, periodic in azimuth, in [0, 1]."""
+    grid = rng.random((cells_y + 1, cells_x))
+    y = np.linspace(0, cells_y, h, endpoint=False) + 0.5 * cells_y / h
+    x = np.linspace(0, cells_x, w, endpoint=False)
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    fy, fx = y - y0, x - x0
+    fy, fx = fy * fy * (3 - 2 * fy), fx * fx * (3 - 2 * fx)
+    y1, x1 = np.minimum(y0 + 1, cells_y), (x0 + 1) % cells_x
+    g = grid
+    top = g[y0][:, x0] * (1 - fx) + g[y0][:, x1] * fx
+    bot = g[y1][:, x0] * (1 - fx) + g[y1][:, x1] * fx
+    return top * (1 - fy[:, None]) + bot * fy[:, None]
+
+
+def _fbm(rng: np.random.Generator, h: int, w: int, base: int, octaves: int = 4) -> np.ndarray:
+    out, amp, total = np.zeros((h, w)), 1.0, 0.0
+    for o in range(octaves):
+        cells = base * 2**o
+        out += amp * _periodic_noise(rng, h, w, cells, max(cells // 2, 2))
+        total += amp
+        amp *= 0.5
+    return out / total
+
+
+def procedural_sky(variant: int, width: int = 1024, height: int = 512) -> np.ndarray:
+    """A deterministic outdoor HDR sky: sun, sky gradient, clouds, skyline and ground.
+
+    The skyline (buildings and trees around the horizon) and cloud structure give the
+    reflections something to show; the sun makes highlights. Same variant, same pixels.
+    """
+    rng = np.random.default_rng([20201125, variant])
+    v = 1.0 - (np.arange(height) + 0.5) / height
+    u = (np.arange(width) + 0.5) / width
+    d = uv_to_direction(u[None, :], v[:, None])
+    elev = np.arcsin(np.clip(d[..., 2], -1, 1))
+    azim = np.arctan2(d[..., 1], d[..., 0])
+
+    sun_az = rng.uniform(-np.pi, np.pi)
+    sun_el = np.deg2rad(rng.uniform(12.0, 60.0))
+    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+    cos_sun = np.clip(d @ sun, -1.0, 1.0)
+    ang = np.arccos(cos_sun)
+
+    warm = rng.uniform(0.0, 1.0)
+    zenith = np.array([0.18, 0.32, 0.75]) * rng.uniform(0.7, 1.2)
+    horizon = np.array([0.85, 0.85, 0.9]) + warm * np.array([0.25, 0.05, -0.2])
+    t = np.clip(elev / (np.pi / 2), 0, 1)[..., None] ** 0.5
+    sky = horizon * (1 - t) + zenith * t
+    sky = sky + (np.exp(-ang / 0.35) * 1.5)[..., None] * np.array([1.0, 0.9, 0.7])  # glow
+    cover = rng.uniform(0.2, 0.7)
+    clouds = np.clip((_fbm(rng, height, width, 6) - (1 - cover)) * 3.0, 0, 1)[..., None]
+    sky = sky * (1 - clouds) + clouds * np.array([1.1, 1.1, 1.12]) * (0.6 + 0.6 * np.clip(cos_sun, 0, 1))[..., None]
+    disk = (ang < np.deg2rad(1.6)).astype(np.float64)
+    sky = sky + disk[..., None] * 400.0 * np.array([1.0, 0.95, 0.85])
+
+    # Skyline: blocks of buildings and tree lines with a random height per azimuth step.
+    steps = rng.integers(40, 90)
+    heights = np.deg2rad(rng.uniform(1.0, 16.0, steps)) * (rng.random(steps) < 0.8)
+    idx = ((azim + np.pi) / (2 * np.pi) * steps).astype(int) % steps
+    shade = rng.uniform(0.05, 0.35, steps)[idx]
+    tint = np.array([0.9, 1.0, 0.85]) if rng.random() < 0.5 else np.array([1.0, 0.95, 0.9])
+    texture = 0.7 + 0.6 * _fbm(rng, height, width, 64, 2)
+    blocks = (elev >= 0) & (elev < heights[idx])
+    sky = np.where(blocks[..., None], (shade * texture)[..., None] * tint, sky)
+
+    ground_col = np.array([0.16, 0.15, 0.14]) if rng.random() < 0.6 else np.array([0.10, 0.16, 0.07])
+    ground = ground_col * (0.6 + 0.8 * _fbm(rng, height, width, 32, 3))[..., None]
+    ground = ground * (1.0 + 1.5 * max(np.sin(sun_el), 0.1))
+    sky = np.where((elev < 0)[..., None], ground, sky)
+    return sky.astype(np.float32)
+
+
+def reflection_reference(normal_cam: np.ndarray, cam_to_world: np.ndarray, focal_px: float,
+                         env: np.ndarray, rotation_deg: float, gloss: np.ndarray) -> np.ndarray:
+    """NumPy reference of the `reflection` layer for a pinhole camera.
+
+    `normal_cam` (H, W, 3) is in camera space (OpenGL: +Z toward the camera) as stored in the
+    dataset; `cam_to_world` is the 3x3 rotation whose columns are the camera's right, up and
+    back axes in world space; `gloss` (H, W) the glossiness per pixel.
+    """
+    h, w, _ = normal_cam.shape
+    xs = (np.arange(w) + 0.5) - 0.5 * w
+    ys = 0.5 * h - (np.arange(h) + 0.5)
+    ray_cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -focal_px), axis=-1).astype(np.float64)
+    ray_cam /= np.linalg.norm(ray_cam, axis=-1, keepdims=True)
+    view = ray_cam @ cam_to_world.T
+    n = normal_cam.astype(np.float64) @ cam_to_world.T
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    r = reflect(view, n)
+    return sample_equirect(env, r, rotation_deg) * gloss[..., None]

@@ -1,0 +1,215 @@
+"""Dataset generation: resume, worker processes, shards and merging (no bpy here).
+
+The parent process owns dataset.json and manifest.jsonl; Blender runs in-process for one
+worker and in `spawn`ed processes for several. Results come back in sample order
+(`imap`), so the manifest of a fresh run is the same whatever the number of workers.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import platform
+import shutil
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from tqdm import tqdm
+
+from .dataset import (FORMAT_VERSION, DatasetError, append_manifest, atomic_write_json, read_info,
+                      read_manifest, verify_rows, write_manifest)
+from .recipe import Recipe, identity_diff
+
+
+class GenerationError(ValueError):
+    """Bad input for a generation run; the message names the option or file."""
+
+
+def parse_shard(text: str | None) -> tuple[int, int]:
+    if not text:
+        return 0, 1
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise GenerationError(f"--shard {text!r}: expected I/N with integers, e.g. 0/4") from None
+    if n < 1 or not 0 <= i < n:
+        raise GenerationError(f"--shard {text!r}: expected 0 <= I < N")
+    return i, n
+
+
+def software_versions() -> dict:
+    versions = {"python": platform.python_version()}
+    for mod in ("bpy", "numpy", "OpenEXR"):
+        try:
+            m = sys.modules.get(mod) or __import__(mod)
+            versions[mod] = getattr(m, "__version__", None) or ".".join(map(str, getattr(m, "app").version))
+        except Exception:  # noqa: BLE001 - versions are informative only
+            versions[mod] = None
+    return versions
+
+
+def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]) -> tuple[dict, list[dict]]:
+    """Create or re-open `out`; refuse a folder that holds another recipe or other files.
+
+    Returns dataset.json's content and the manifest rows whose files verify.
+    """
+    out = Path(out)
+    identity = recipe.identity()
+    if out.exists() and not out.is_dir():
+        raise GenerationError(f"--out {out}: exists and is not a directory")
+    if (out / "dataset.json").exists():
+        info = read_info(out)
+        diff = identity_diff(info.get("recipe", {}), identity)
+        if diff:
+            raise GenerationError(f"--out {out} holds a dataset made with another recipe ({diff}); "
+                                  "choose another --out or repeat the original options")
+        if tuple(info.get("shard", [0, 1])) != shard:
+            raise GenerationError(f"--out {out} holds shard {info.get('shard')}, not {list(shard)}")
+    elif out.exists() and any(out.iterdir()):
+        raise GenerationError(f"--out {out}: folder is not empty and holds no dataset.json; refusing to mix files")
+    (out / "samples").mkdir(parents=True, exist_ok=True)
+    for stale in (out / "samples").glob(".*.tmp*"):  # left by a killed writer
+        stale.unlink()
+    rows = read_manifest(out / "manifest.jsonl")
+    good, bad = verify_rows(out, rows)
+    if bad or len(good) != len(rows):
+        for row, why in bad:
+            print(f"redoing sample {row['index']}: {why}", file=sys.stderr)
+        write_manifest(out / "manifest.jsonl", good)
+    info = {
+        "format_version": FORMAT_VERSION,
+        "kind": recipe.kind,
+        "resolution": [recipe.width, recipe.height],
+        "seed": recipe.seed,
+        "count_requested": count,
+        "count": len(good),
+        "shard": list(shard),
+        "complete": False,
+        "software": software_versions(),
+        "recipe": identity,
+        "layers": list(_layers(recipe.kind)),
+    }
+    atomic_write_json(out / "dataset.json", info)
+    return info, good
+
+
+def _layers(kind: str):
+    from .dataset import KIND_LAYERS
+
+    return KIND_LAYERS[kind]
+
+
+# ------------------------------------------------------------------- worker processes
+_worker = None
+
+
+def _init_worker(recipe: Recipe, threads: int) -> None:
+    global _worker
+    from .render import make_renderer
+
+    _worker = make_renderer(recipe, threads)
+
+
+def _render_one(args: tuple[int, str]) -> dict:
+    index, out = args
+    return _worker.render(index, Path(out))
+
+
+def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str | None = None,
+             progress: bool = True) -> dict:
+    """Render samples [0, count) of this shard that are not finished yet; returns dataset.json."""
+    if count < 1:
+        raise GenerationError(f"--count {count}: expected at least 1")
+    if workers < 1:
+        raise GenerationError(f"--workers {workers}: expected at least 1")
+    shard_t = parse_shard(shard)
+    out = Path(out)
+    info, done_rows = prepare_output(out, recipe, count, shard_t)
+    done = {r["index"] for r in done_rows}
+    todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]
+    total = len(done) + len(todo)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    bar = tqdm(total=total, initial=len(done), unit="sample", desc=f"{recipe.kind} {out.name}",
+               disable=not progress, smoothing=0.1, dynamic_ncols=True)
+    manifest = out / "manifest.jsonl"
+    started = time.perf_counter()
+    rendered = 0
+    try:
+        if not todo:
+            pass
+        elif workers == 1:
+            from .render import make_renderer
+
+            renderer = make_renderer(recipe, threads)
+            try:
+                for i in todo:
+                    append_manifest(manifest, renderer.render(i, out))
+                    rendered += 1
+                    bar.update()
+            finally:
+                renderer.close()
+        else:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(workers, initializer=_init_worker, initargs=(recipe, threads)) as pool:
+                for row in pool.imap(_render_one, [(i, str(out)) for i in todo]):
+                    append_manifest(manifest, row)
+                    rendered += 1
+                    bar.update()
+    finally:
+        bar.close()
+        rows = read_manifest(manifest)
+        info["count"] = len(rows)
+        info["complete"] = len(rows) == total
+        atomic_write_json(out / "dataset.json", info)
+    elapsed = time.perf_counter() - started
+    info["_rendered"], info["_seconds"] = rendered, elapsed
+    return info
+
+
+def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
+    """Join shard folders of one recipe into `out` (files hard-linked where possible)."""
+    if not shards:
+        raise GenerationError("merge: give at least one shard folder")
+    infos = [read_info(s) for s in shards]
+    base = infos[0]
+    for s, info in zip(shards[1:], infos[1:]):
+        diff = identity_diff(base.get("recipe", {}), info.get("recipe", {}))
+        if diff:
+            raise GenerationError(f"merge: {s} was made with another recipe than {shards[0]} ({diff})")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise GenerationError(f"merge: --out {out} is not empty")
+    (out / "samples").mkdir(parents=True, exist_ok=True)
+    by_index: dict[int, tuple[Path, dict]] = {}
+    for s in shards:
+        good, bad = verify_rows(s, read_manifest(Path(s) / "manifest.jsonl"))
+        if bad:
+            raise DatasetError(f"merge: {s}: {len(bad)} sample(s) fail verification, e.g. {bad[0][0]['file']}: {bad[0][1]}")
+        for row in good:
+            prev = by_index.get(row["index"])
+            if prev and prev[1]["sha256"] != row["sha256"]:
+                raise DatasetError(f"merge: sample {row['index']} differs between {prev[0]} and {s}")
+            by_index[row["index"]] = (Path(s), row)
+    for idx in tqdm(sorted(by_index), desc="merge", unit="sample", disable=not progress):
+        src_root, row = by_index[idx]
+        src, dst = src_root / row["file"], out / row["file"]
+        tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    rows = [by_index[i][1] for i in sorted(by_index)]
+    write_manifest(out / "manifest.jsonl", rows)
+    requested = max(int(i.get("count_requested", 0)) for i in infos)
+    missing = [i for i in range(requested) if i not in by_index]
+    info = {**base, "shard": [0, 1], "count": len(rows), "count_requested": requested, "complete": not missing,
+            "merged_from": [str(s) for s in shards]}
+    atomic_write_json(out / "dataset.json", info)
+    info["_missing"] = missing
+    return info
+
+
+def recipe_summary(recipe: Recipe) -> dict:
+    return asdict(recipe)

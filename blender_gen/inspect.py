@@ -1,0 +1,115 @@
+"""`iae-gen inspect`: summary, checksum verification and a preview grid (no bpy)."""
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from .conversions import preview_srgb8
+from .dataset import KIND_LAYERS, DatasetError, open_dataset, read_exr, sha256_file
+
+
+def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = True) -> dict:
+    """Verify every sample and gather statistics. `problems` lists what is wrong."""
+    ds = open_dataset(root)
+    layers = KIND_LAYERS[ds.kind]
+    w, h = ds.resolution
+    problems: list[str] = []
+    stats = {name: {"min": np.inf, "max": -np.inf, "sum": 0.0, "n": 0} for name in layers}
+    unit_err, unit_n = 0.0, 0
+    expected = ds.info.get("count_requested", len(ds))
+    shard = ds.info.get("shard", [0, 1])
+    want = {i for i in range(expected) if i % shard[1] == shard[0]}
+    have = [r["index"] for r in ds.rows]
+    dupes = sorted(i for i, c in Counter(have).items() if c > 1)
+    if dupes:
+        problems.append(f"duplicate manifest rows for samples {dupes[:10]}")
+    missing = sorted(want - set(have))
+    if missing:
+        problems.append(f"{len(missing)} sample(s) missing from the manifest, e.g. {missing[:10]}")
+    for k, row in enumerate(tqdm(ds.rows, desc="inspect", unit="sample", disable=not progress)):
+        path = ds.root / row["file"]
+        if not path.exists():
+            problems.append(f"{row['file']}: missing")
+            continue
+        if sha256_file(path) != row["sha256"]:
+            problems.append(f"{row['file']}: checksum mismatch")
+            continue
+        if max_stats is not None and k >= max_stats:
+            continue
+        try:
+            data = read_exr(path, layers)
+        except DatasetError as exc:
+            problems.append(str(exc))
+            continue
+        for name, arr in data.items():
+            if arr.shape[:2] != (h, w):
+                problems.append(f"{row['file']}: layer {name} is {arr.shape[1]}x{arr.shape[0]}, expected {w}x{h}")
+            if not np.all(np.isfinite(arr)):
+                problems.append(f"{row['file']}: layer {name} has non-finite values")
+            s = stats[name]
+            s["min"], s["max"] = min(s["min"], float(arr.min())), max(s["max"], float(arr.max()))
+            s["sum"] += float(arr.sum(dtype=np.float64))
+            s["n"] += arr.size
+        if "normal" in data and "mask" in data:
+            on = data["mask"][..., 0] > 0.5
+            if on.any():
+                unit_err = max(unit_err, float(np.abs(np.linalg.norm(data["normal"][on], axis=-1) - 1).max()))
+                unit_n += int(on.sum())
+    summary = {
+        "root": str(ds.root),
+        "kind": ds.kind,
+        "resolution": [w, h],
+        "samples": len(ds),
+        "expected": len(want),
+        "complete": not missing and not problems,
+        "categories": dict(Counter(r["car"]["category"] for r in ds.rows)),
+        "cars": len({r["car"]["name"] for r in ds.rows}),
+        "paints": dict(Counter(r["paint"] for r in ds.rows)),
+        "envmaps": dict(Counter(r["envmap"]["name"] for r in ds.rows)),
+        "layers": {k: {"min": v["min"], "max": v["max"], "mean": v["sum"] / v["n"]} for k, v in stats.items() if v["n"]},
+        "normal_unit_error_max": unit_err if unit_n else None,
+        "problems": problems,
+    }
+    return summary
+
+
+def preview_grid(root: Path, out: Path, count: int = 6) -> Path:
+    """A PNG with one row per sample: (rgb,) normal, albedo, reflection in sRGB."""
+    ds = open_dataset(root)
+    if len(ds) == 0:
+        raise DatasetError(f"{root}: no finished samples to preview")
+    cols = [c for c in ("rgb", "normal", "albedo", "reflection") if c in KIND_LAYERS[ds.kind]]
+    picks = np.linspace(0, len(ds) - 1, min(count, len(ds))).round().astype(int)
+    rows = []
+    for i in picks:
+        data = ds.load(int(i), cols)
+        rows.append(np.concatenate([preview_srgb8(c, data[c]) for c in cols], axis=1))
+    grid = np.concatenate(rows, axis=0)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp.png")
+    Image.fromarray(grid).save(tmp)
+    tmp.replace(out)
+    return out
+
+
+def format_summary(s: dict) -> str:
+    lines = [
+        f"dataset   {s['root']}  ({s['kind']}, {s['resolution'][0]}x{s['resolution'][1]})",
+        f"samples   {s['samples']} of {s['expected']}  {'complete' if s['complete'] else 'INCOMPLETE'}",
+        f"cars      {s['cars']} models; categories " + ", ".join(f"{k} {v}" for k, v in sorted(s["categories"].items())),
+        "paints    " + ", ".join(f"{k} {v}" for k, v in sorted(s["paints"].items())),
+        "envmaps   " + ", ".join(f"{k} {v}" for k, v in sorted(s["envmaps"].items())),
+        "layer          min        max       mean",
+    ]
+    for name, v in s["layers"].items():
+        lines.append(f"{name:<10} {v['min']:>9.4f} {v['max']:>10.4f} {v['mean']:>10.4f}")
+    if s["normal_unit_error_max"] is not None:
+        lines.append(f"normals   max | |n| - 1 | on the mask: {s['normal_unit_error_max']:.2e}")
+    for p in s["problems"]:
+        lines.append(f"PROBLEM   {p}")
+    return "\n".join(lines)

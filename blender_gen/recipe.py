@@ -1,0 +1,72 @@
+"""What a dataset is made from: the recipe (plain data) and per-sample random draws.
+
+Sample i depends only on (seed, i): any worker, shard or resumed run renders the same
+sample from it. The recipe's identity (everything but count, workers and shard) is stored
+in dataset.json and compared on every re-run so a folder never mixes two recipes.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import CameraRanges
+from .envmap import DEFAULT_SKY_VARIANTS, PROCEDURAL_PREFIX
+
+KINDS = ("intrinsics", "pbr")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    kind: str
+    seed: int
+    width: int
+    height: int
+    cars: tuple[str, ...] = ("procedural:train",)
+    car_rules: str | None = None
+    envmaps: tuple[str, ...] = ("procedural",)
+    samples: int = 1
+    camera: CameraRanges = field(default_factory=CameraRanges)
+    sky_variants: int = DEFAULT_SKY_VARIANTS
+
+    def identity(self) -> dict:
+        """The fields that define the samples; files are named by content, not by path."""
+        d = asdict(self)
+        d["envmaps"] = [_file_identity(e) if e != "procedural" else e for e in self.envmaps]
+        d["cars"] = [_file_identity(c) if Path(c).suffix else c for c in self.cars]
+        d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
+        return d
+
+    def envmap_names(self) -> list[str]:
+        """The environment choices a sample draws from, in a fixed order."""
+        names: list[str] = []
+        for e in self.envmaps:
+            if e == "procedural":
+                names += [f"{PROCEDURAL_PREFIX}sky_{k:02d}" for k in range(self.sky_variants)]
+            else:
+                names.append(e)
+        return names
+
+
+def _file_identity(path: str) -> dict:
+    p = Path(path)
+    return {"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+
+
+def recipe_from_identity(info: dict) -> dict:
+    return info.get("recipe", {})
+
+
+def sample_seed(seed: int, index: int) -> int:
+    """A 31-bit seed for sample `index` (Cycles takes a signed int)."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def identity_diff(old: dict, new: dict) -> str | None:
+    """The first field where two recipe identities differ, as text; None if equal."""
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) != new.get(key):
+            return f"{key!r} is {old.get(key)!r} there and {new.get(key)!r} here"
+    return None

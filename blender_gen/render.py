@@ -1,0 +1,178 @@
+"""One Blender process that renders samples of a recipe (imports bpy).
+
+`SampleRenderer(recipe).render(index, out_dir)` draws sample `index`'s car, paint,
+environment and camera from its own seed, renders all intrinsic layers in one Cycles
+pass, and writes the sample's EXR atomically. Cars and environment images are built on
+first use and kept, so a worker pays for each model once.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from . import scene as S
+from .camera import sample_camera
+from .cars import load_catalogue, load_part_materials, select_cars
+from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
+from .envmap import PROCEDURAL_PREFIX, procedural_sky
+from .materials import load_materials
+from .recipe import Recipe, sample_seed
+
+import bpy  # noqa: E402  (after the project imports so their errors surface first)
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence Blender's C-level 'Saved: ...' lines without touching Python's own streams."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _scratch_dir() -> str:
+    return "/dev/shm" if os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()
+
+
+class SampleRenderer:
+    def __init__(self, recipe: Recipe, threads: int = 0):
+        self.recipe = recipe
+        self.scene = S.reset_scene()
+        S.configure_cycles(self.scene, recipe.width, recipe.height, recipe.samples, threads)
+        self.table = load_materials()
+        self.paints = list(self.table.paints.values())
+        self.materials = {**self.table.parts}
+        self.env_names = recipe.envmap_names()
+        self._env_images: dict[str, bpy.types.Image] = {}
+        self.shader, self.env_node = S.intrinsic_material(self._env_image(self.env_names[0]))
+        self.car_specs = self._resolve_cars()
+        self._cars: dict[str, S.CarInstance] = {}
+        self._visible: str | None = None
+        fd, self._scratch = tempfile.mkstemp(prefix="iae_render_", suffix=".exr", dir=_scratch_dir())
+        os.close(fd)
+        self.scene.render.filepath = self._scratch
+
+    # ------------------------------------------------------------------ resources
+    def _resolve_cars(self) -> list:
+        catalogue = load_catalogue()
+        return select_cars(catalogue, ",".join(self.recipe.cars))
+
+    def _env_image(self, name: str) -> bpy.types.Image:
+        img = self._env_images.get(name)
+        if img is None:
+            if name.startswith(PROCEDURAL_PREFIX):
+                variant = int(name.rsplit("_", 1)[1])
+                img = S.image_from_array(name, procedural_sky(variant))
+            else:
+                img = S.load_envmap_image(name)
+            self._env_images[name] = img
+        return img
+
+    def env_pixels(self, name: str) -> np.ndarray:
+        """The environment map exactly as the shader sees it (for reference checks)."""
+        return S.image_to_array(self._env_image(name))
+
+    def _car(self, spec) -> S.CarInstance:
+        car = self._cars.get(spec.name)
+        if car is None:
+            from .cars import build_car
+
+            part_mat, tinted = load_part_materials()
+            if spec.tinted_rear:
+                part_mat = {**part_mat, "window_side": tinted}
+            car = S.add_car(spec.name, spec.category, build_car(spec), part_mat, self.materials, self.shader, self.scene)
+            car.source = "procedural"
+            self._cars[spec.name] = car
+        return car
+
+    # ------------------------------------------------------------------ samples
+    def draw(self, index: int) -> dict:
+        """The random choices of sample `index` (deterministic in seed and index)."""
+        seed = sample_seed(self.recipe.seed, index)
+        rng = np.random.default_rng(seed)
+        spec = self.car_specs[int(rng.integers(len(self.car_specs)))]
+        paint = self.paints[int(rng.integers(len(self.paints)))]
+        env = self.env_names[int(rng.integers(len(self.env_names)))]
+        rotation = float(rng.uniform(0.0, 360.0))
+        car = self._car(spec)
+        pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
+        return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
+
+    def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
+        d = self.draw(index)
+        car = d["car"]
+        if self._visible != car.name:
+            for other in self._cars.values():
+                other.set_visible(other is car)
+            self._visible = car.name
+        img = self._env_image(d["env"])
+        if self.env_node.image != img:
+            self.env_node.image = img
+        S.set_sample_state(car, d["paint"], d["rotation"])
+        S.set_camera(self.scene, d["pose"])
+        self.scene.cycles.seed = d["seed"]
+        with _quiet_stdout():
+            bpy.ops.render.render(write_still=True)
+        return self._read_passes(), d
+
+    def _read_passes(self) -> dict[str, np.ndarray]:
+        ch = read_exr_channels(self._scratch)
+
+        def get(layer: str, comps: str) -> np.ndarray:
+            return np.stack([ch[f"ViewLayer.{layer}.{c}"] for c in comps], axis=-1).astype(np.float32)
+
+        mask = np.clip(get("mask", "X"), 0.0, 1.0)
+        normal = get("normal", "RGB")
+        length = np.linalg.norm(normal, axis=-1, keepdims=True)
+        on = mask > 0
+        normal = np.where(on & (length > 1e-6), normal / np.maximum(length, 1e-6), 0.0)
+        return {
+            "normal": normal, "albedo": get("albedo", "RGB"), "reflection": get("reflection", "RGB"),
+            "mask": mask, "material": np.round(get("material", "X")),
+        }
+
+    def render(self, index: int, out_dir: Path) -> dict:
+        """Render sample `index` into `out_dir` and return its manifest row."""
+        layers, d = self.render_layers(index)
+        rel = sample_filename(index)
+        path = Path(out_dir) / rel
+        write_exr(path, layers)
+        return {
+            "index": index,
+            "file": rel,
+            "sha256": sha256_file(path),
+            "seed": d["seed"],
+            "car": {"name": d["spec"].name, "category": d["spec"].category, "source": d["car"].source},
+            "paint": d["paint"].name,
+            "envmap": {"name": Path(d["env"]).name if not d["env"].startswith(PROCEDURAL_PREFIX) else d["env"],
+                       "rotation_deg": round(d["rotation"], 6)},
+            "camera": {**d["pose"].to_json(), "resolution": [self.recipe.width, self.recipe.height]},
+        }
+
+    def close(self) -> None:
+        try:
+            os.unlink(self._scratch)
+        except OSError:
+            pass
+
+
+def make_renderer(recipe: Recipe, threads: int = 0):
+    """The renderer for the recipe's dataset kind."""
+    if recipe.kind == "intrinsics":
+        return SampleRenderer(recipe, threads)
+    if recipe.kind == "pbr":
+        from .pbr import PbrRenderer
+
+        return PbrRenderer(recipe, threads)
+    raise ValueError(f"unknown dataset kind {recipe.kind!r}")
