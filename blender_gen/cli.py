@@ -186,8 +186,9 @@ def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int
 
     try:
         summary = inspect_dataset(root, max_stats=max_stats, progress=not quiet)
-        if summary["samples"]:
-            summary["grid"] = str(preview_grid(root, grid or Path(root) / "previews" / "inspect_grid.png", grid_samples))
+        if summary["samples"] > len(summary["bad_files"]):
+            summary["grid"] = str(preview_grid(root, grid or Path(root) / "previews" / "inspect_grid.png",
+                                               grid_samples, frozenset(summary["bad_files"])))
     except DatasetError as exc:
         _fail(str(exc))
     click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))

@@ -7,6 +7,8 @@ worker and in `spawn`ed processes for several. Results come back in sample order
 from __future__ import annotations
 
 import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+from importlib import metadata
 import os
 import platform
 import shutil
@@ -39,13 +41,14 @@ def parse_shard(text: str | None) -> tuple[int, int]:
 
 
 def software_versions() -> dict:
+    """Package versions from their metadata: importing bpy here would put Blender's script
+    folders on sys.path, which spawned workers inherit and then cannot import bpy."""
     versions = {"python": platform.python_version()}
-    for mod in ("bpy", "numpy", "OpenEXR"):
+    for dist in ("bpy", "numpy", "OpenEXR", "intrinsic-autoencoders"):
         try:
-            m = sys.modules.get(mod) or __import__(mod)
-            versions[mod] = getattr(m, "__version__", None) or ".".join(map(str, getattr(m, "app").version))
-        except Exception:  # noqa: BLE001 - versions are informative only
-            versions[mod] = None
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            versions[dist] = None
     return versions
 
 
@@ -73,10 +76,10 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
         stale.unlink()
     rows = read_manifest(out / "manifest.jsonl")
     good, bad = verify_rows(out, rows)
-    if bad or len(good) != len(rows):
-        for row, why in bad:
-            print(f"redoing sample {row['index']}: {why}", file=sys.stderr)
-        write_manifest(out / "manifest.jsonl", good)
+    for row, why in bad:
+        print(f"redoing sample {row['index']}: {why}", file=sys.stderr)
+    # Rewritten every time: this also drops a torn last line that a killed append left.
+    write_manifest(out / "manifest.jsonl", good)
     info = {
         "format_version": FORMAT_VERSION,
         "kind": recipe.kind,
@@ -150,9 +153,11 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
             finally:
                 renderer.close()
         else:
-            ctx = mp.get_context("spawn")
-            with ctx.Pool(workers, initializer=_init_worker, initargs=(recipe, threads)) as pool:
-                for row in pool.imap(_render_one, [(i, str(out)) for i in todo]):
+            # spawn: a fresh interpreter per worker (bpy must not be forked); the executor
+            # fails fast if a worker cannot start, and map() yields results in sample order.
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                     initargs=(recipe, threads)) as pool:
+                for row in pool.map(_render_one, [(i, str(out)) for i in todo]):
                     append_manifest(manifest, row)
                     rendered += 1
                     bar.update()

@@ -18,6 +18,7 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
     layers = KIND_LAYERS[ds.kind]
     w, h = ds.resolution
     problems: list[str] = []
+    bad_files: list[str] = []
     stats = {name: {"min": np.inf, "max": -np.inf, "sum": 0.0, "n": 0} for name in layers}
     unit_err, unit_n = 0.0, 0
     expected = ds.info.get("count_requested", len(ds))
@@ -34,9 +35,11 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
         path = ds.root / row["file"]
         if not path.exists():
             problems.append(f"{row['file']}: missing")
+            bad_files.append(row["file"])
             continue
         if sha256_file(path) != row["sha256"]:
             problems.append(f"{row['file']}: checksum mismatch")
+            bad_files.append(row["file"])
             continue
         if max_stats is not None and k >= max_stats:
             continue
@@ -73,17 +76,22 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
         "layers": {k: {"min": v["min"], "max": v["max"], "mean": v["sum"] / v["n"]} for k, v in stats.items() if v["n"]},
         "normal_unit_error_max": unit_err if unit_n else None,
         "problems": problems,
+        "bad_files": bad_files,
     }
     return summary
 
 
-def preview_grid(root: Path, out: Path, count: int = 6) -> Path:
-    """A PNG with one row per sample: (rgb,) normal, albedo, reflection in sRGB."""
+def preview_grid(root: Path, out: Path, count: int = 6, skip: frozenset[str] = frozenset()) -> Path:
+    """A PNG with one row per sample: (rgb,) normal, albedo, reflection in sRGB.
+
+    Samples whose files are named in `skip` (failed verification) are left out.
+    """
     ds = open_dataset(root)
-    if len(ds) == 0:
+    usable = [i for i, r in enumerate(ds.rows) if r["file"] not in skip]
+    if not usable:
         raise DatasetError(f"{root}: no finished samples to preview")
     cols = [c for c in ("rgb", "normal", "albedo", "reflection") if c in KIND_LAYERS[ds.kind]]
-    picks = np.linspace(0, len(ds) - 1, min(count, len(ds))).round().astype(int)
+    picks = [usable[k] for k in np.linspace(0, len(usable) - 1, min(count, len(usable))).round().astype(int)]
     rows = []
     for i in picks:
         data = ds.load(int(i), cols)

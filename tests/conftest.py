@@ -1,0 +1,39 @@
+"""Shared fixtures: tiny datasets rendered once per test session."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED_ASSETS = ROOT.parent / "shared" / "assets"
+
+
+def run_gen(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    """Run `iae-gen` in a fresh process (as a user would) and capture its output."""
+    cmd = [sys.executable, "-m", "blender_gen.cli", *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def tiny_intrinsics(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "intr"
+    run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet")
+    return out
+
+
+@pytest.fixture(scope="session")
+def renderer():
+    """An in-process intrinsics renderer at 128x64 (imports bpy once for the session)."""
+    from blender_gen.recipe import Recipe
+    from blender_gen.render import SampleRenderer
+
+    r = SampleRenderer(Recipe(kind="intrinsics", seed=11, width=128, height=64), threads=2)
+    yield r
+    r.close()

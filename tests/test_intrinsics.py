@@ -1,0 +1,252 @@
+"""The intrinsics renderer and generator, end to end in Blender at tiny resolutions."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blender_gen.dataset import read_exr, read_manifest, sha256_file
+from blender_gen.envmap import reflection_reference
+from blender_gen.materials import BODY_MATERIAL_ID, load_materials
+
+from .conftest import ROOT, SHARED_ASSETS, run_gen
+
+pytestmark = pytest.mark.blender
+
+
+def _pixel_rays(w: int, h: int, focal_px: float) -> np.ndarray:
+    xs = (np.arange(w) + 0.5) - 0.5 * w
+    ys = 0.5 * h - (np.arange(h) + 0.5)
+    rays = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -focal_px), axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def rendered(renderer):
+    return [renderer.render_layers(i) for i in range(6)]
+
+
+def test_normals_are_unit_on_the_mask_zero_off_it_and_face_the_camera(rendered):
+    for layers, d in rendered:
+        mask = layers["mask"][..., 0]
+        n = layers["normal"]
+        on = mask > 0.5
+        assert on.mean() > 0.03, "the car is in the frame"
+        assert np.allclose(np.linalg.norm(n[on], axis=-1), 1.0, atol=1e-3)
+        assert np.all(n[~on] == 0)
+        rays = _pixel_rays(n.shape[1], n.shape[0], d["pose"].focal_px(n.shape[1]))
+        facing = -np.sum(n * rays, axis=-1)[on]
+        assert (facing > -0.05).mean() > 0.99, "shading normals point toward the viewer (OpenGL +Z)"
+        assert np.median(n[on][:, 2]) > 0.2
+
+
+def test_albedo_is_the_assigned_material_and_the_body_paint(rendered):
+    table = load_materials()
+    by_id = {m.id: np.array(m.albedo) for m in table.parts.values()}
+    for layers, d in rendered:
+        ids = layers["material"][..., 0].astype(int)
+        albedo = layers["albedo"]
+        assert set(np.unique(ids)) <= set(range(0, BODY_MATERIAL_ID + 1))
+        assert (ids == BODY_MATERIAL_ID).any(), "the body is visible"
+        for mid in np.unique(ids):
+            expect = np.array(d["paint"].albedo) if mid == BODY_MATERIAL_ID else by_id.get(mid, np.zeros(3))
+            got = albedo[ids == mid]
+            assert np.allclose(got, expect, rtol=2e-3, atol=1e-4), f"material {mid}"
+
+
+def test_reflection_is_zero_without_gloss_and_matches_the_numpy_reference(renderer, rendered):
+    table = load_materials()
+    gloss_of = {0: 0.0, **{m.id: m.gloss for m in table.parts.values()}}
+    zero_gloss = [m.id for m in table.parts.values() if m.gloss == 0.0]
+    assert zero_gloss, "the table has matte materials (underbody, interior)"
+    errors = []
+    for layers, d in rendered:
+        ids = layers["material"][..., 0].astype(int)
+        gloss = np.vectorize(lambda i: d["paint"].gloss if i == BODY_MATERIAL_ID else gloss_of[i])(ids)
+        refl = layers["reflection"]
+        assert np.all(refl[gloss == 0] == 0)
+        ref = reflection_reference(layers["normal"], d["pose"].matrix(), d["pose"].focal_px(refl.shape[1]),
+                                   renderer.env_pixels(d["env"]), d["rotation"], gloss)
+        on = gloss > 0
+        err = np.abs(refl[on] - ref[on]).max(axis=-1)
+        scale = np.maximum(np.abs(ref[on]).max(axis=-1), 0.05)
+        errors.append(err / scale)
+    rel = np.concatenate(errors)
+    # Pixels agree up to half-float storage and the sub-pixel jitter of the one sample;
+    # a few land on edges of the skyline where a tiny angle changes the texel.
+    assert np.median(rel) < 0.01, np.median(rel)
+    assert (rel < 0.1).mean() > 0.95, (rel < 0.1).mean()
+
+
+def test_each_part_object_carries_its_material(renderer):
+    from blender_gen.cars import load_part_materials
+
+    table = load_materials()
+    mapping, tinted = load_part_materials()
+    for car in renderer._cars.values():
+        spec = next(s for s in renderer.car_specs if s.name == car.name)
+        for part, obj in car.objects.items():
+            want = mapping[part]
+            if part == "window_side" and spec.tinted_rear:
+                want = tinted
+            if want == "paint":
+                assert obj["iae_material"] == BODY_MATERIAL_ID
+            else:
+                assert obj["iae_material"] == table.parts[want].id, f"{car.name}.{part}"
+                assert tuple(obj["iae_albedo"]) == pytest.approx(table.parts[want].albedo)
+
+
+def _files(root: Path) -> dict[str, str]:
+    return {p.name: sha256_file(p) for p in sorted((root / "samples").glob("*.exr"))}
+
+
+def test_same_recipe_and_seed_give_identical_files(tiny_intrinsics, tmp_path):
+    again = tmp_path / "again"
+    run_gen("intrinsics", "--out", str(again), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet")
+    assert _files(again) == _files(tiny_intrinsics)
+    assert (again / "manifest.jsonl").read_bytes() == (tiny_intrinsics / "manifest.jsonl").read_bytes()
+    other = tmp_path / "other"
+    run_gen("intrinsics", "--out", str(other), "--count", "2", "--resolution", "64x32", "--seed", "4", "--quiet")
+    assert list(_files(other).values()) != list(_files(tiny_intrinsics).values())[:2]
+
+
+def test_manifest_rows_describe_each_sample(tiny_intrinsics):
+    rows = read_manifest(tiny_intrinsics / "manifest.jsonl")
+    assert [r["index"] for r in rows] == [0, 1, 2, 3]
+    for r in rows:
+        assert r["sha256"] == sha256_file(tiny_intrinsics / r["file"])
+        assert {"name", "category"} <= set(r["car"]) and r["paint"] and r["envmap"]["name"]
+        assert 0 <= r["envmap"]["rotation_deg"] < 360
+        cam = r["camera"]
+        assert len(cam["location"]) == 3 and cam["focal_length"] > 0 and cam["resolution"] == [64, 32]
+        assert np.hypot(*cam["location"][:2]) <= 8.0 and cam["location"][2] <= 3.0
+    info = json.loads((tiny_intrinsics / "dataset.json").read_text())
+    assert info["kind"] == "intrinsics" and info["complete"] and info["count"] == 4
+    assert info["resolution"] == [64, 32] and info["recipe"]["seed"] == 3
+
+
+def test_resume_after_kill_finishes_with_identical_files(tiny_intrinsics, tmp_path):
+    out = tmp_path / "killed"
+    args = [sys.executable, "-m", "blender_gen.cli", "intrinsics", "--out", str(out), "--count", "4",
+            "--resolution", "64x32", "--seed", "3", "--quiet"]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(read_manifest(out / "manifest.jsonl")) < 1:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = read_manifest(out / "manifest.jsonl")
+    assert 1 <= len(before) < 4, "killed mid-way"
+    # what a killed writer can leave: a torn manifest line and a half-written temporary file
+    with open(out / "manifest.jsonl", "a") as fh:
+        fh.write('{"index": 3, "file": "samples/00')
+    (out / "samples" / ".000003.exr.tmp999").write_bytes(b"partial")
+    kept = {r["file"]: os.stat(out / r["file"]).st_mtime_ns for r in before}
+    run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet")
+    assert _files(out) == _files(tiny_intrinsics)
+    assert not list((out / "samples").glob(".*"))
+    for f, mtime in kept.items():
+        assert os.stat(out / f).st_mtime_ns == mtime, f"{f} was finished and must not be redone"
+    assert [r["index"] for r in read_manifest(out / "manifest.jsonl")] == [0, 1, 2, 3]
+
+
+def test_a_corrupted_sample_is_detected_and_redone(tiny_intrinsics, tmp_path):
+    import shutil
+
+    out = tmp_path / "copy"
+    shutil.copytree(tiny_intrinsics, out)
+    victim = out / "samples" / "000002.exr"
+    victim.write_bytes(victim.read_bytes()[:100])
+    bad = run_gen("inspect", str(out), "--quiet", check=False)
+    assert bad.returncode == 1 and "000002.exr: checksum mismatch" in bad.stdout
+    run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet")
+    assert _files(out) == _files(tiny_intrinsics)
+    assert run_gen("inspect", str(out), "--quiet").returncode == 0
+
+
+def test_shards_with_workers_merge_into_the_single_run(tiny_intrinsics, tmp_path):
+    shards = []
+    for i in range(2):
+        s = tmp_path / f"shard{i}"
+        run_gen("intrinsics", "--out", str(s), "--count", "4", "--resolution", "64x32", "--seed", "3",
+                "--shard", f"{i}/2", "--quiet", *(["--workers", "2"] if i == 0 else []))
+        assert [r["index"] % 2 for r in read_manifest(s / "manifest.jsonl")] == [i, i]
+        shards.append(str(s))
+    merged = tmp_path / "merged"
+    run_gen("merge", "--out", str(merged), *shards, "--quiet")
+    assert _files(merged) == _files(tiny_intrinsics)
+    assert (merged / "manifest.jsonl").read_bytes() == (tiny_intrinsics / "manifest.jsonl").read_bytes()
+    assert run_gen("inspect", str(merged), "--quiet").returncode == 0
+
+
+def test_inspect_summarises_and_writes_a_preview_grid(tiny_intrinsics):
+    proc = run_gen("inspect", str(tiny_intrinsics), "--json", "--quiet")
+    s = json.loads(proc.stdout)
+    assert s["complete"] and s["samples"] == 4 and not s["problems"]
+    assert set(s["layers"]) == {"normal", "albedo", "reflection", "mask", "material"}
+    assert s["layers"]["normal"]["min"] >= -1.001 and s["layers"]["mask"]["max"] == 1.0
+    from PIL import Image
+
+    grid = Image.open(s["grid"])
+    assert grid.size == (3 * 64, 4 * 32)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--cars", "no_such_car.glb"], "--cars no_such_car.glb: no such model file"),
+    (["--cars", "no_such_model"], "'no_such_model' is neither a catalogue model"),
+    (["--envmap", "missing.hdr"], "--envmap missing.hdr: no such file"),
+    (["--resolution", "512by256"], "--resolution '512by256': expected WIDTHxHEIGHT"),
+    (["--resolution", "0x256"], "between 8 and 8192"),
+    (["--count", "0"], "--count 0: expected at least 1"),
+    (["--shard", "3/2"], "--shard '3/2'"),
+])
+def test_bad_input_gives_a_one_line_error(tmp_path, args, message):
+    base = ["intrinsics", "--out", str(tmp_path / "d"), "--count", "2", "--resolution", "64x32", "--quiet"]
+    # later options override earlier ones in click, so `args` wins
+    proc = run_gen(*base, *args, check=False)
+    assert proc.returncode != 0
+    err = proc.stderr.strip().splitlines()
+    assert err and message in err[-1], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_unreadable_envmap_is_rejected(tmp_path):
+    fake = tmp_path / "sky.hdr"
+    fake.write_bytes(b"this is no image")
+    proc = run_gen("intrinsics", "--out", str(tmp_path / "d"), "--count", "1", "--envmap", str(fake), check=False)
+    assert proc.returncode != 0 and "not a Radiance HDR file" in proc.stderr
+
+
+def test_a_folder_of_another_recipe_is_refused_and_kept(tiny_intrinsics, tmp_path):
+    import shutil
+
+    out = tmp_path / "keep"
+    shutil.copytree(tiny_intrinsics, out)
+    before = _files(out)
+    proc = run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "9",
+                   "--quiet", check=False)
+    assert proc.returncode != 0 and "another recipe" in proc.stderr and "'seed' is 3 there and 9 here" in proc.stderr
+    assert _files(out) == before
+    stray = tmp_path / "stray"
+    stray.mkdir()
+    (stray / "notes.txt").write_text("mine")
+    proc = run_gen("intrinsics", "--out", str(stray), "--count", "1", check=False)
+    assert proc.returncode != 0 and "not empty" in proc.stderr and (stray / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.skipif(not (SHARED_ASSETS / "hdri").is_dir(), reason="shared CC0 assets not present")
+def test_a_real_hdri_environment_renders(tmp_path):
+    hdr = SHARED_ASSETS / "hdri" / "potsdamer_platz_1k.hdr"
+    out = tmp_path / "hdri"
+    run_gen("intrinsics", "--out", str(out), "--count", "2", "--resolution", "64x32", "--envmap", str(hdr), "--quiet")
+    rows = read_manifest(out / "manifest.jsonl")
+    assert {r["envmap"]["name"] for r in rows} == {"potsdamer_platz_1k.hdr"}
+    refl = read_exr(out / rows[0]["file"], ["reflection"])["reflection"]
+    assert refl.max() > 0.05

@@ -1,0 +1,154 @@
+"""Blender-free parts: material table, catalogue geometry, cameras, env lookup, format."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blender_gen.camera import CameraRanges, euler_xyz_deg, look_at, project, sample_camera
+from blender_gen.cars import CATEGORIES, PARTS, build_car, load_catalogue, load_part_materials, select_cars
+from blender_gen.conversions import from_network, linear_to_srgb, srgb_to_linear, to_network
+from blender_gen.dataset import read_exr, read_manifest, write_exr
+from blender_gen.envmap import direction_to_uv, procedural_sky, sample_equirect, uv_to_direction
+from blender_gen.materials import N_PAINTS, N_PART_MATERIALS, load_materials
+
+
+def test_material_table_has_the_papers_counts():
+    t = load_materials()
+    assert len(t.parts) == N_PART_MATERIALS == 18
+    assert len(t.paints) == N_PAINTS == 15
+    assert sorted(m.id for m in t.parts.values()) == list(range(1, 19))
+    for m in list(t.parts.values()) + list(t.paints.values()):
+        assert all(0.0 <= c <= 1.0 for c in m.albedo) and 0.0 <= m.gloss <= 1.0
+
+
+def test_bad_material_table_names_file_and_field(tmp_path):
+    bad = tmp_path / "m.toml"
+    bad.write_text('[[part]]\nname = "x"\ncolor = "red"\ngloss = 0.5\n')
+    with pytest.raises(ValueError, match=r"m\.toml.*color.*sRGB"):
+        load_materials(bad)
+
+
+def test_every_part_maps_to_a_known_material():
+    table = load_materials()
+    mapping, tinted = load_part_materials()
+    for part in PARTS:
+        assert mapping[part] == "paint" or mapping[part] in table.parts
+    assert tinted in table.parts
+    used = set(mapping.values()) | {tinted}
+    assert used - {"paint"} == set(table.parts), "every one of the 18 part materials is used by some part"
+
+
+def test_catalogue_covers_six_categories_and_has_a_heldout_split():
+    cat = load_catalogue()
+    assert len(cat) >= 28
+    assert {c.category for c in cat.values()} == set(CATEGORIES)
+    for split in ("train", "heldout"):
+        assert {c.category for c in select_cars(cat, f"procedural:{split}")} == set(CATEGORIES)
+    with pytest.raises(ValueError, match="nope"):
+        select_cars(cat, "nope")
+
+
+def test_car_geometry_is_deterministic_grounded_and_sized():
+    cat = load_catalogue()
+    for spec in cat.values():
+        parts = build_car(spec)
+        pts = np.concatenate([m.verts for m in parts.values()])
+        assert abs(pts[:, 2].min()) < 0.01, f"{spec.name}: tyres touch the ground"
+        length = pts[:, 0].max() - pts[:, 0].min()
+        assert abs(length - spec.length) < 0.35, f"{spec.name}: length {length:.2f} vs {spec.length}"
+        assert pts[:, 2].max() <= spec.height + 0.1
+        for needed in ("body", "windshield", "window_side", "window_rear", "tyres", "rims", "headlights",
+                       "tail_lights", "grille", "bumper_front", "bumper_rear", "mirrors", "licence_plates",
+                       "door_handles", "underbody"):
+            assert needed in parts, f"{spec.name} lacks {needed}"
+    a, b = build_car(cat["sedan_a"]), build_car(cat["sedan_a"])
+    assert all(np.array_equal(a[k].verts, b[k].verts) for k in a)
+
+
+def test_camera_constraints_hold_over_many_draws():
+    parts = build_car(load_catalogue()["van_b"])
+    pts = np.concatenate([m.verts for m in parts.values()])[::5]
+    ranges = CameraRanges()
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        pose = sample_camera(rng, pts, 512, 256, ranges)
+        loc = np.array(pose.location)
+        assert np.hypot(loc[0], loc[1]) <= ranges.radius_max + 1e-9
+        assert ranges.height_min <= loc[2] <= ranges.height_max
+        assert ranges.focal_min <= pose.focal_length <= ranges.focal_max
+        xy, depth = project(pts, pose, 512, 256)
+        assert (depth > 0).all()
+        assert xy[:, 0].min() >= 0 and xy[:, 0].max() <= 512 and xy[:, 1].min() >= 0 and xy[:, 1].max() <= 256
+        area = np.ptp(xy[:, 0]) * np.ptp(xy[:, 1])
+        assert area >= ranges.min_coverage * 512 * 256
+        # looking at the car: the look-at target projects near the image centre
+        txy, _ = project(np.array([pose.target]), pose, 512, 256)
+        assert np.allclose(txy[0], [256, 128], atol=1e-6)
+
+
+def test_camera_sampler_fails_clearly_when_impossible():
+    pts = np.concatenate([m.verts for m in build_car(load_catalogue()["van_b"]).values()])
+    with pytest.raises(RuntimeError, match="no valid camera"):
+        sample_camera(np.random.default_rng(0), pts, 512, 256,
+                      CameraRanges(radius_min=0.5, radius_max=1.0, max_tries=50))
+
+
+def test_look_at_and_euler_round_trip():
+    m = look_at(np.array([3.0, -4.0, 1.5]), np.array([0.0, 0.0, 0.7]))
+    assert np.allclose(m.T @ m, np.eye(3), atol=1e-12)
+    x, y, z = np.deg2rad(euler_xyz_deg(m))
+    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    assert np.allclose(rz @ ry @ rx, m, atol=1e-9)
+
+
+def test_equirect_mapping_round_trip_and_convention():
+    u = np.random.default_rng(1).random((100,))
+    v = np.random.default_rng(2).uniform(0.05, 0.95, (100,))
+    uu, vv = direction_to_uv(uv_to_direction(u, v))
+    assert np.allclose(uu % 1, u, atol=1e-9) and np.allclose(vv, v, atol=1e-9)
+    # Blender: +X at the image centre, the zenith at the top
+    assert np.allclose(direction_to_uv(np.array([1.0, 0, 0])), (0.5, 0.5))
+    assert np.isclose(direction_to_uv(np.array([0, 0, 1.0]))[1], 1.0)
+    env = np.zeros((8, 16, 3), np.float32)
+    env[0] = 5.0  # top row only
+    assert sample_equirect(env, np.array([0, 0, 1.0]))[0] == pytest.approx(5.0)
+    assert sample_equirect(env, np.array([0, 0, -1.0]))[0] == pytest.approx(0.0)
+
+
+def test_procedural_sky_is_hdr_and_deterministic():
+    a, b = procedural_sky(3, 256, 128), procedural_sky(3, 256, 128)
+    assert np.array_equal(a, b)
+    assert a.max() > 50.0 and a.min() >= 0.0, "a sun far brighter than the sky"
+    assert not np.array_equal(a, procedural_sky(4, 256, 128))
+
+
+def test_network_space_conversions():
+    x = np.random.default_rng(0).random((4, 4, 3)).astype(np.float32)
+    assert np.allclose(from_network("albedo", to_network("albedo", x)), x, atol=1e-5)
+    assert to_network("albedo", np.full((1, 1, 3), 7.0)).max() == pytest.approx(1.0)  # HDR clips
+    assert np.allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-6)
+    n = np.array([[[0.0, 0.6, 0.8]]], np.float32)
+    assert np.array_equal(to_network("normal", n), n)
+    with pytest.raises(ValueError):
+        to_network("depth", n)
+
+
+def test_exr_round_trip_is_half_float_and_atomic(tmp_path):
+    layers = {"normal": np.random.default_rng(0).uniform(-1, 1, (6, 10, 3)), "mask": np.ones((6, 10, 1))}
+    p = tmp_path / "s.exr"
+    write_exr(p, layers)
+    back = read_exr(p)
+    assert set(back) == {"normal", "mask"}
+    assert np.allclose(back["normal"], layers["normal"], atol=1e-3)
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_torn_last_manifest_line_is_dropped(tmp_path):
+    m = tmp_path / "manifest.jsonl"
+    m.write_text('{"index": 0}\n{"index": 1}\n{"ind')
+    assert [r["index"] for r in read_manifest(m)] == [0, 1]
+    m.write_text('{"index": 0}\n{"ind\n{"index": 2}\n')
+    with pytest.raises(ValueError, match="line 2"):
+        read_manifest(m)
