@@ -34,7 +34,8 @@ def run(kind: str, out: Path, count: int, workers: int, extra: list[str]) -> dic
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--count", type=int, default=200)
+    ap.add_argument("--count", type=int, default=200, help="samples in the sustained window")
+    ap.add_argument("--warm", type=int, default=40, help="samples of the short run subtracted out")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--resolution", default="512x256")
     args = ap.parse_args()
@@ -42,16 +43,20 @@ def main() -> None:
     results = []
     try:
         for w in args.workers:
-            out = tmp / f"w{w}"
-            # warm-up run of a few samples builds nothing persistent; each run starts cold,
-            # so the figure includes Blender start-up, sky generation and car building.
-            r = run("intrinsics", out, args.count, w, ["--resolution", args.resolution])
-            sps = args.count / r["wall_s"]
-            results.append({"workers": w, "samples": args.count, **r, "samples_per_s": sps})
-            print(f"intrinsics {args.resolution} workers={w}: {args.count} samples in {r['wall_s']:.1f} s "
-                  f"= {sps:.2f} samples/s (end to end, cold start); peak RSS of one process "
-                  f"{r['peak_rss_mib_max_process']:.0f} MiB", flush=True)
-            shutil.rmtree(out)
+            # Two fresh runs, `warm` and `warm + count` samples: both pay Blender start-up, sky
+            # generation and car building, so their difference is the sustained rate.
+            short = run("intrinsics", tmp / f"s{w}", args.warm, w, ["--resolution", args.resolution])
+            long = run("intrinsics", tmp / f"l{w}", args.warm + args.count, w, ["--resolution", args.resolution])
+            sustained = args.count / (long["wall_s"] - short["wall_s"])
+            end_to_end = (args.warm + args.count) / long["wall_s"]
+            startup = short["wall_s"] - args.warm / sustained
+            results.append({"workers": w, "sustained_samples_per_s": sustained, "end_to_end_samples_per_s": end_to_end,
+                            "startup_s": startup, "peak_rss_mib_one_process": long["peak_rss_mib_max_process"]})
+            print(f"intrinsics {args.resolution} workers={w}: sustained {sustained:.2f} samples/s over {args.count} "
+                  f"samples; end to end {end_to_end:.2f} samples/s for {args.warm + args.count} (start-up about "
+                  f"{startup:.1f} s); peak RSS of one process {long['peak_rss_mib_max_process']:.0f} MiB", flush=True)
+            shutil.rmtree(tmp / f"s{w}")
+            shutil.rmtree(tmp / f"l{w}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     print(json.dumps({"machine": {"cpus": os.cpu_count()}, "results": results}, indent=2))

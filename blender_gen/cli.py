@@ -105,6 +105,8 @@ def _common_options(fn):
                      show_default=True, help="Focal length range in mm (36 mm sensor)."),
         click.option("--min-coverage", default=CameraRanges.min_coverage, show_default=True, type=float,
                      help="Minimum fraction of the frame the car's bounding box must cover."),
+        click.option("--views-per-car", default=4, show_default=True, type=int,
+                     help="Consecutive samples that share a (randomly drawn) car model; 1 = a new draw per sample."),
         click.option("--quiet", is_flag=True, help="No progress bar."),
     ]
     for opt in reversed(opts):
@@ -117,6 +119,8 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -
         _fail(f"--count {o['count']}: expected at least 1")
     if o["workers"] < 1:
         _fail(f"--workers {o['workers']}: expected at least 1")
+    if o["views_per_car"] < 1:
+        _fail(f"--views-per-car {o['views_per_car']}: expected at least 1")
     samples = default_samples if o["samples"] is None else o["samples"]
     if samples < 1:
         _fail(f"--samples {samples}: expected at least 1")
@@ -138,7 +142,7 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -
     envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or ("procedural",)
     return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
                   car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
-                  camera=ranges)
+                  camera=ranges, views_per_car=o["views_per_car"])
 
 
 def _run(recipe: Recipe, o: dict) -> None:

@@ -157,7 +157,8 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
             # fails fast if a worker cannot start, and map() yields results in sample order.
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
                                      initargs=(recipe, threads)) as pool:
-                for row in pool.map(_render_one, [(i, str(out)) for i in todo]):
+                jobs = [(i, str(out)) for i in todo]
+                for row in pool.map(_render_one, jobs, chunksize=recipe.views_per_car):
                     append_manifest(manifest, row)
                     rendered += 1
                     bar.update()

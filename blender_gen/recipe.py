@@ -30,6 +30,9 @@ class Recipe:
     samples: int = 1
     camera: CameraRanges = field(default_factory=CameraRanges)
     sky_variants: int = DEFAULT_SKY_VARIANTS
+    # Consecutive samples [k*v, (k+1)*v) share a car model (drawn at random per block):
+    # swapping the model in Cycles costs about as much as rendering a view.
+    views_per_car: int = 4
 
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""
@@ -62,6 +65,11 @@ def recipe_from_identity(info: dict) -> dict:
 def sample_seed(seed: int, index: int) -> int:
     """A 31-bit seed for sample `index` (Cycles takes a signed int)."""
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def block_seed(seed: int, index: int, views_per_car: int) -> int:
+    """Seed of the random car choice shared by a block of `views_per_car` samples."""
+    return int(np.random.SeedSequence([seed, index // views_per_car, 1]).generate_state(1)[0])
 
 
 def identity_diff(old: dict, new: dict) -> str | None:

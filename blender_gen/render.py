@@ -21,7 +21,7 @@ from .cars import load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
 from .materials import load_materials
-from .recipe import Recipe, sample_seed
+from .recipe import Recipe, block_seed, sample_seed
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
 
@@ -101,7 +101,8 @@ class SampleRenderer:
         """The random choices of sample `index` (deterministic in seed and index)."""
         seed = sample_seed(self.recipe.seed, index)
         rng = np.random.default_rng(seed)
-        spec = self.car_specs[int(rng.integers(len(self.car_specs)))]
+        block = np.random.default_rng(block_seed(self.recipe.seed, index, self.recipe.views_per_car))
+        spec = self.car_specs[int(block.integers(len(self.car_specs)))]
         paint = self.paints[int(rng.integers(len(self.paints)))]
         env = self.env_names[int(rng.integers(len(self.env_names)))]
         rotation = float(rng.uniform(0.0, 360.0))
