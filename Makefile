@@ -26,6 +26,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/bench_generate.py
+	$(PY) bench/bench_pbr.py --views 3 --samples 4 8 16 --reference 128
 
 clean:
 	rm -rf $(OUT) .pytest_cache

@@ -172,7 +172,7 @@ def intrinsics(**o) -> None:
 @_common_options
 def pbr(**o) -> None:
     """Render Cycles path-traced images with their ground-truth intrinsics."""
-    _run(_build_recipe("pbr", "procedural:heldout", 64, o), o)
+    _run(_build_recipe("pbr", "procedural:heldout", 8, o), o)
 
 
 @main.command("inspect")

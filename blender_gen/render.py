@@ -49,19 +49,37 @@ class SampleRenderer:
     def __init__(self, recipe: Recipe, threads: int = 0):
         self.recipe = recipe
         self.scene = S.reset_scene()
-        S.configure_cycles(self.scene, recipe.width, recipe.height, recipe.samples, threads)
+        self._configure(threads)
         self.table = load_materials()
         self.paints = list(self.table.paints.values())
         self.materials = {**self.table.parts}
         self.env_names = recipe.envmap_names()
         self._env_images: dict[str, bpy.types.Image] = {}
-        self.shader, self.env_node = S.intrinsic_material(self._env_image(self.env_names[0]))
+        self.shader, self.env_node = S.car_material(self._env_image(self.env_names[0]), physical=self.physical)
+        self._setup_lighting()
         self.car_specs = self._resolve_cars()
         self._cars: dict[str, S.CarInstance] = {}
         self._visible: str | None = None
         fd, self._scratch = tempfile.mkstemp(prefix="iae_render_", suffix=".exr", dir=_scratch_dir())
         os.close(fd)
         self.scene.render.filepath = self._scratch
+
+    physical = False  # the PBR renderer shades with Principled BSDFs
+
+    def _configure(self, threads: int) -> None:
+        S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
+
+    def _setup_lighting(self) -> None:
+        """Intrinsics need no light: AOVs only, the world stays black."""
+
+    def _set_environment(self, img) -> None:
+        if self.env_node.image != img:
+            self.env_node.image = img
+
+    def _place(self, d: dict) -> None:
+        """Paint, environment rotation (a shader attribute) and camera of a sample."""
+        S.set_sample_state(d["car"], d["paint"], d["rotation"])
+        S.set_camera(self.scene, d["pose"])
 
     # ------------------------------------------------------------------ resources
     def _resolve_cars(self) -> list:
@@ -92,7 +110,6 @@ class SampleRenderer:
             if spec.tinted_rear:
                 part_mat = {**part_mat, "window_side": tinted}
             car = S.add_car(spec.name, spec.category, build_car(spec), part_mat, self.materials, self.shader, self.scene)
-            car.source = "procedural"
             self._cars[spec.name] = car
         return car
 
@@ -104,7 +121,7 @@ class SampleRenderer:
         block = np.random.default_rng(block_seed(self.recipe.seed, index, self.recipe.views_per_car))
         spec = self.car_specs[int(block.integers(len(self.car_specs)))]
         paint = self.paints[int(rng.integers(len(self.paints)))]
-        env = self.env_names[int(rng.integers(len(self.env_names)))]
+        env = self.env_names[int(block.integers(len(self.env_names)))]
         rotation = float(rng.uniform(0.0, 360.0))
         car = self._car(spec)
         pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
@@ -117,11 +134,8 @@ class SampleRenderer:
             for other in self._cars.values():
                 other.set_visible(other is car)
             self._visible = car.name
-        img = self._env_image(d["env"])
-        if self.env_node.image != img:
-            self.env_node.image = img
-        S.set_sample_state(car, d["paint"], d["rotation"])
-        S.set_camera(self.scene, d["pose"])
+        self._set_environment(self._env_image(d["env"]))
+        self._place(d)
         self.scene.cycles.seed = d["seed"]
         with _quiet_stdout():
             bpy.ops.render.render(write_still=True)
@@ -133,6 +147,7 @@ class SampleRenderer:
         def get(layer: str, comps: str) -> np.ndarray:
             return np.stack([ch[f"ViewLayer.{layer}.{c}"] for c in comps], axis=-1).astype(np.float32)
 
+        self._channels = ch
         mask = np.clip(get("mask", "X"), 0.0, 1.0)
         normal = get("normal", "RGB")
         length = np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -149,6 +164,7 @@ class SampleRenderer:
         rel = sample_filename(index)
         path = Path(out_dir) / rel
         write_exr(path, layers)
+        self._write_preview(layers, Path(out_dir), index)
         return {
             "index": index,
             "file": rel,
@@ -160,6 +176,9 @@ class SampleRenderer:
                        "rotation_deg": round(d["rotation"], 6)},
             "camera": {**d["pose"].to_json(), "resolution": [self.recipe.width, self.recipe.height]},
         }
+
+    def _write_preview(self, layers: dict, out_dir: Path, index: int) -> None:
+        """Intrinsics sets write no per-sample previews (`iae-gen inspect` makes a grid)."""
 
     def close(self) -> None:
         try:

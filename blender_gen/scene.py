@@ -22,6 +22,11 @@ from .materials import Material
 
 AOVS = (("normal", "COLOR"), ("albedo", "COLOR"), ("reflection", "COLOR"), ("mask", "VALUE"), ("material", "VALUE"))
 ATTR_ALBEDO, ATTR_GLOSS, ATTR_MATERIAL, ATTR_ENV_ROT = "iae_albedo", "iae_gloss", "iae_material", "iae_env_rot"
+# Physical parameters for the PBR shader, also object attributes (see `set_material_attrs`).
+PBR_ATTRS = {
+    "iae_metallic": "Metallic", "iae_roughness": "Roughness", "iae_transmission": "Transmission Weight",
+    "iae_ior": "IOR", "iae_emission": "Emission Strength", "iae_coat": "Coat Weight",
+}
 
 
 def reset_scene() -> bpy.types.Scene:
@@ -153,9 +158,14 @@ def add_intrinsic_aovs(nt: bpy.types.NodeTree, env_node: bpy.types.Node) -> None
     _aov(nt, "mask", one.outputs[0], 600, -500)
 
 
-def intrinsic_material(env_image: bpy.types.Image) -> tuple[bpy.types.Material, bpy.types.Node]:
-    """The one material of the intrinsics render; returns it and its environment node."""
-    mat = bpy.data.materials.new("iae_intrinsics")
+def car_material(env_image: bpy.types.Image, physical: bool = False) -> tuple[bpy.types.Material, bpy.types.Node]:
+    """The one material every car part shares; returns it and its environment node.
+
+    Intrinsics: AOVs over an opaque Holdout (without a closure the ray would pass through
+    and AOVs would add up over hits). PBR (`physical`): the same AOVs over a Principled
+    BSDF whose parameters are object attributes, so both sets see identical ground truth.
+    """
+    mat = bpy.data.materials.new("iae_pbr" if physical else "iae_intrinsics")
     nt = mat.node_tree
     for node in list(nt.nodes):
         nt.nodes.remove(node)
@@ -163,10 +173,17 @@ def intrinsic_material(env_image: bpy.types.Image) -> tuple[bpy.types.Material, 
     env.image = env_image
     env.interpolation = "Linear"
     add_intrinsic_aovs(nt, env)
-    # An opaque closure: without one the ray passes through and AOVs add up over hits.
     out = nt.nodes.new("ShaderNodeOutputMaterial")
-    holdout = nt.nodes.new("ShaderNodeHoldout")
-    nt.links.new(holdout.outputs[0], out.inputs["Surface"])
+    if not physical:
+        surface = nt.nodes.new("ShaderNodeHoldout")
+    else:
+        surface = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        nt.links.new(_attr(nt, ATTR_ALBEDO, -300, 300).outputs["Color"], surface.inputs["Base Color"])
+        for k, (attr, socket) in enumerate(PBR_ATTRS.items()):
+            nt.links.new(_attr(nt, attr, -300, 200 - 100 * k).outputs["Fac"], surface.inputs[socket])
+        nt.links.new(_attr(nt, "iae_emission_color", -300, -500).outputs["Color"], surface.inputs["Emission Color"])
+        surface.inputs["Coat Roughness"].default_value = 0.03
+    nt.links.new(surface.outputs[0], out.inputs["Surface"])
     return mat, env
 
 
@@ -195,15 +212,29 @@ class CarInstance:
     objects: dict[str, bpy.types.Object]
     part_material: dict[str, str]  # part -> material name ("paint" = body paint)
     points: np.ndarray  # (N, 3) world-space vertices, subsampled
+    root: bpy.types.Object | None = None  # parent of all parts
+    source: str = "procedural"
 
     def set_visible(self, visible: bool) -> None:
         self.collection.hide_render = not visible
 
 
-def set_material_attrs(obj: bpy.types.Object, material: Material) -> None:
+def set_material_attrs(obj: bpy.types.Object, material: Material, paint: bool = False) -> None:
+    """Intrinsic and physical parameters of a part as object attributes.
+
+    Paints are modelled as a base coat under a clear coat; a "metallic" paint gets a
+    partly metallic base (full metal would make it a tinted mirror).
+    """
     obj[ATTR_ALBEDO] = tuple(material.albedo)
     obj[ATTR_GLOSS] = float(material.gloss)
     obj[ATTR_MATERIAL] = float(material.id)
+    obj["iae_metallic"] = 0.55 * material.metallic if paint else material.metallic
+    obj["iae_roughness"] = (0.35 if material.metallic else 0.3) if paint else material.roughness
+    obj["iae_transmission"] = material.transmission
+    obj["iae_ior"] = material.ior
+    obj["iae_emission"] = material.emission
+    obj["iae_emission_color"] = tuple(material.emission_color)
+    obj["iae_coat"] = 1.0 if paint else 0.0
 
 
 def add_car(name: str, category: str, parts: dict[str, Mesh], part_material: dict[str, str],
@@ -211,11 +242,14 @@ def add_car(name: str, category: str, parts: dict[str, Mesh], part_material: dic
     """Create one object per part, all sharing the intrinsics shader."""
     coll = bpy.data.collections.new(name)
     scene.collection.children.link(coll)
+    root = bpy.data.objects.new(f"{name}.root", None)  # turns the whole car (PBR rotation)
+    coll.objects.link(root)
     objects = {}
     for part, mesh in parts.items():
         me = mesh_from_numpy(f"{name}.{part}", mesh)
         me.materials.append(shader)
         obj = bpy.data.objects.new(f"{name}.{part}", me)
+        obj.parent = root
         coll.objects.link(obj)
         mat_name = part_material[part]
         if mat_name != "paint":
@@ -223,7 +257,49 @@ def add_car(name: str, category: str, parts: dict[str, Mesh], part_material: dic
         objects[part] = obj
     pts = np.concatenate([m.verts for m in parts.values()])
     step = max(1, len(pts) // 4000)
-    return CarInstance(name, category, coll, objects, dict(part_material), pts[::step].copy())
+    return CarInstance(name, category, coll, objects, dict(part_material), pts[::step].copy(), root)
+
+
+def environment_world(scene: bpy.types.Scene, env_image: bpy.types.Image) -> tuple[bpy.types.Node, bpy.types.Node]:
+    """World lit by the environment map; returns its texture and mapping nodes."""
+    world = bpy.data.worlds.new("iae_world")
+    scene.world = world
+    nt = world.node_tree
+    for node in list(nt.nodes):
+        nt.nodes.remove(node)
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    turn = nt.nodes.new("ShaderNodeMapping")
+    turn.vector_type = "VECTOR"
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = env_image
+    env.interpolation = "Linear"
+    bg = nt.nodes.new("ShaderNodeBackground")
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(coord.outputs["Generated"], turn.inputs["Vector"])
+    nt.links.new(turn.outputs["Vector"], env.inputs["Vector"])
+    nt.links.new(env.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    return env, turn
+
+
+def shadow_catcher(scene: bpy.types.Scene, size: float = 60.0) -> bpy.types.Object:
+    """A ground plane at z = 0 that shows only the car's shadow over the environment."""
+    me = bpy.data.meshes.new("iae_ground")
+    h = 0.5 * size
+    me.from_pydata([(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [], [(0, 1, 2, 3)])
+    mat = bpy.data.materials.new("iae_ground")
+    nt = mat.node_tree
+    for node in list(nt.nodes):
+        nt.nodes.remove(node)
+    bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    bsdf.inputs["Color"].default_value = (0.5, 0.5, 0.5, 1.0)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(bsdf.outputs[0], out.inputs["Surface"])
+    me.materials.append(mat)
+    obj = bpy.data.objects.new("iae_ground", me)
+    obj.is_shadow_catcher = True
+    scene.collection.objects.link(obj)
+    return obj
 
 
 def set_camera(scene: bpy.types.Scene, pose: CameraPose) -> bpy.types.Object:
@@ -250,6 +326,6 @@ def set_sample_state(car: CarInstance, paint: Material, env_rotation_deg: float)
     rot = (0.0, 0.0, -math.radians(env_rotation_deg))  # the shader looks up Rz(-rotation) r
     for part, obj in car.objects.items():
         if car.part_material[part] == "paint":
-            set_material_attrs(obj, paint)
+            set_material_attrs(obj, paint, paint=True)
         obj[ATTR_ENV_ROT] = rot
         obj.update_tag()

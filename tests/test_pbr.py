@@ -1,0 +1,105 @@
+"""The Cycles PBR set: images with ground-truth intrinsics from the same render."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from blender_gen.dataset import read_exr, read_manifest, sha256_file
+from blender_gen.recipe import Recipe
+
+from .conftest import run_gen
+
+pytestmark = pytest.mark.blender
+
+W, H = 128, 64
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    """Samples 0..2 of a PBR recipe and of the intrinsics recipe with the same options."""
+    from blender_gen.render import make_renderer
+
+    out = {}
+    for kind in ("intrinsics", "pbr"):
+        r = make_renderer(Recipe(kind=kind, seed=21, width=W, height=H, cars=("procedural:heldout",), samples=8), 2)
+        out[kind] = [r.render_layers(i) for i in range(3)]
+        if kind == "pbr":
+            out["renderer"] = r
+    return out
+
+
+def test_ground_truth_layers_equal_the_intrinsics_render(pairs):
+    for (pbr, dp), (intr, di) in zip(pairs["pbr"], pairs["intrinsics"]):
+        assert dp["spec"].name == di["spec"].name and dp["paint"].name == di["paint"].name
+        assert dp["pose"] == di["pose"] and dp["env"] == di["env"]
+        # compare inside the car, away from edges where the PBR set averages 8 jittered samples
+        inner = ndimage.binary_erosion((pbr["mask"][..., 0] == 1) & (intr["mask"][..., 0] == 1), iterations=1)
+        same_part = inner & (pbr["material"][..., 0] == intr["material"][..., 0])
+        assert same_part.sum() > 0.9 * inner.sum() > 50
+        assert np.abs(pbr["mask"] - intr["mask"]).mean() < 0.03
+        cos = np.sum(pbr["normal"][same_part] * intr["normal"][same_part], axis=-1)
+        assert np.median(cos) > 0.999
+        assert np.median(np.abs(pbr["albedo"][same_part] - intr["albedo"][same_part])) < 2e-3
+        refl_err = np.abs(pbr["reflection"][same_part] - intr["reflection"][same_part]).max(axis=-1)
+        assert np.median(refl_err) < 0.02
+
+
+def test_rgb_is_finite_nonnegative_and_the_car_casts_a_shadow(pairs):
+    import bpy
+
+    r = pairs["renderer"]
+    layers, d = pairs["pbr"][0]
+    rgb = layers["rgb"]
+    assert np.isfinite(rgb).all() and (rgb >= 0).all() and rgb.mean() > 0.01
+    # the same view without the car: the ground there is lit; with the car, part of it is in shadow
+    r._set_environment(r._env_image(d["env"]))
+    r._place(d)  # the fixture rendered other samples since
+    d["car"].set_visible(False)
+    try:
+        r._visible = None
+        with_car = rgb.mean(axis=-1)
+        r.scene.cycles.seed = d["seed"]
+        from blender_gen.render import _quiet_stdout
+
+        with _quiet_stdout():
+            bpy.ops.render.render(write_still=True)
+        empty = r._read_passes()["rgb"].mean(axis=-1)
+    finally:
+        d["car"].set_visible(True)
+    ground = layers["mask"][..., 0] == 0
+    ratio = with_car[ground] / np.maximum(empty[ground], 1e-4)
+    assert (ratio < 0.8).sum() > 20, "a shadow: ground darker with the car than without"
+    assert np.median(ratio) > 0.9, "most of the ground stays lit"
+    assert with_car[ground][ratio < 0.8].mean() < empty[ground][ratio < 0.8].mean()
+
+
+def test_pbr_cli_dataset_previews_determinism_and_inspect(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        run_gen("pbr", "--out", str(out), "--count", "2", "--resolution", "64x32", "--seed", "2", "--quiet")
+    ra, rb = read_manifest(a / "manifest.jsonl"), read_manifest(b / "manifest.jsonl")
+    assert ra == rb and all(sha256_file(a / r["file"]) == r["sha256"] for r in ra)
+    info = json.loads((a / "dataset.json").read_text())
+    assert info["kind"] == "pbr" and info["recipe"]["samples"] == 8
+    assert {r["car"]["name"] for r in ra} <= {"sedan_e", "hatch_e", "wagon_d", "suv_e", "minivan_d", "van_e"}
+    assert sorted(p.name for p in (a / "previews").glob("*.png")) == ["000000.png", "000001.png"]
+    layers = read_exr(a / ra[0]["file"])
+    assert set(layers) == {"rgb", "normal", "albedo", "reflection", "mask", "material"}
+    s = json.loads(run_gen("inspect", str(a), "--json", "--quiet").stdout)
+    assert s["complete"] and s["kind"] == "pbr"
+
+
+def test_pbr_resumes_and_rejects_bad_input(tmp_path):
+    out = tmp_path / "p"
+    run_gen("pbr", "--out", str(out), "--count", "1", "--resolution", "64x32", "--quiet")
+    first = (out / "samples" / "000000.exr").stat().st_mtime_ns
+    run_gen("pbr", "--out", str(out), "--count", "2", "--resolution", "64x32", "--quiet")
+    assert (out / "samples" / "000000.exr").stat().st_mtime_ns == first
+    assert [r["index"] for r in read_manifest(out / "manifest.jsonl")] == [0, 1]
+    bad = run_gen("pbr", "--out", str(out), "--count", "2", "--resolution", "64x32", "--samples", "16", check=False)
+    assert bad.returncode != 0 and "another recipe" in bad.stderr
+    bad = run_gen("pbr", "--out", str(tmp_path / "q"), "--count", "1", "--samples", "0", check=False)
+    assert bad.returncode != 0 and "--samples 0" in bad.stderr
