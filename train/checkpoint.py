@@ -1,0 +1,117 @@
+"""Checkpoints: weights and optimiser tensors in safetensors, the rest in JSON.
+
+No pickle anywhere, so loading a checkpoint cannot execute code. A checkpoint exists only
+once `latest.json` names it: tensors and state are written to temporary names, renamed,
+then the pointer is replaced atomically.
+"""
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from blender_gen.dataset import atomic_write_json
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing or does not fit the model; the message says which key."""
+
+
+def _optim_tensors(prefix: str, opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    sd = opt.state_dict()
+    tensors = {}
+    for pid, state in sd["state"].items():
+        for key, value in state.items():
+            tensors[f"{prefix}.{pid}.{key}"] = value if torch.is_tensor(value) else torch.tensor(value)
+    return tensors, {"param_groups": sd["param_groups"], "state_keys": {str(p): list(s) for p, s in sd["state"].items()}}
+
+
+def _optim_load(prefix: str, opt: torch.optim.Optimizer, tensors: dict, meta: dict) -> None:
+    state = {int(pid): {k: tensors[f"{prefix}.{pid}.{k}"] for k in keys} for pid, keys in meta["state_keys"].items()}
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def save_checkpoint(folder: Path, step: int, model: torch.nn.Module, optimizers: dict, schedulers: dict,
+                    extra: dict | None = None, keep: int = 3) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    name = f"step_{step:08d}"
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    state: dict = {"step": step, "optimizers": {}, "schedulers": {}, "extra": extra or {}}
+    for oname, opt in optimizers.items():
+        t, meta = _optim_tensors(f"optim.{oname}", opt)
+        tensors.update({k: v.detach().cpu().contiguous() for k, v in t.items()})
+        state["optimizers"][oname] = meta
+    for sname, sched in schedulers.items():
+        state["schedulers"][sname] = sched.state_dict()
+    tensors["rng.torch"] = torch.get_rng_state()
+    if torch.cuda.is_available():
+        tensors["rng.cuda"] = torch.cuda.get_rng_state()
+    py_state = random.getstate()
+    state["rng"] = {"python": [py_state[0], list(py_state[1]), py_state[2]],
+                    "numpy": _np_state_to_json(np.random.get_state())}
+    tmp = folder / f".{name}.safetensors.tmp"
+    save_file(tensors, str(tmp))
+    tmp.replace(folder / f"{name}.safetensors")
+    atomic_write_json(folder / f"{name}.json", state)
+    atomic_write_json(folder / "latest.json", {"step": step, "name": name})
+    ckpts = sorted(folder.glob("step_*.safetensors"))
+    for old in ckpts[:-keep] if keep > 0 else []:
+        old.unlink(missing_ok=True)
+        old.with_suffix(".json").unlink(missing_ok=True)
+    return folder / f"{name}.safetensors"
+
+
+def _np_state_to_json(st) -> list:
+    return [st[0], st[1].tolist(), int(st[2]), int(st[3]), float(st[4])]
+
+
+def latest_checkpoint(folder: Path) -> Path | None:
+    ptr = folder / "latest.json"
+    if not ptr.exists():
+        return None
+    name = json.loads(ptr.read_text())["name"]
+    path = folder / f"{name}.safetensors"
+    if not path.exists():
+        raise CheckpointError(f"{ptr} names {path.name}, which is missing")
+    return path
+
+
+def load_weights(path: Path, model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """Load model weights; a key or shape mismatch is an error that names the key."""
+    try:
+        tensors = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error types
+        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({exc})") from exc
+    own = model.state_dict()
+    weights = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+    missing = sorted(set(own) - set(weights))
+    unexpected = sorted(set(weights) - set(own))
+    if missing or unexpected:
+        raise CheckpointError(f"{path}: checkpoint does not match the model config: missing {missing[:3]}, "
+                              f"unexpected {unexpected[:3]}")
+    for k, v in weights.items():
+        if v.shape != own[k].shape:
+            raise CheckpointError(f"{path}: {k} has shape {tuple(v.shape)}, the config's model needs {tuple(own[k].shape)}")
+    model.load_state_dict(weights)
+    return tensors
+
+
+def load_checkpoint(path: Path, model: torch.nn.Module, optimizers: dict, schedulers: dict) -> dict:
+    tensors = load_weights(path, model)
+    state = json.loads(path.with_suffix(".json").read_text())
+    for oname, opt in optimizers.items():
+        _optim_load(f"optim.{oname}", opt, tensors, state["optimizers"][oname])
+    for sname, sched in schedulers.items():
+        sched.load_state_dict(state["schedulers"][sname])
+    torch.set_rng_state(tensors["rng.torch"])
+    if "rng.cuda" in tensors and torch.cuda.is_available():
+        torch.cuda.set_rng_state(tensors["rng.cuda"])
+    py = state["rng"]["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    npst = state["rng"]["numpy"]
+    np.random.set_state((npst[0], np.array(npst[1], dtype=np.uint32), npst[2], npst[3], npst[4]))
+    return state

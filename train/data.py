@@ -1,0 +1,148 @@
+"""Training data: intrinsics stacks M_s and real images I_r, in network space.
+
+EXR decoding and photo resizing run in DataLoader worker processes. Which sample (and
+whether it is flipped) a step sees is a pure function of (seed, stream, step, rank), so a
+resumed run reads exactly the batches an uninterrupted one would.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from blender_gen.conversions import to_network
+from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, open_dataset
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def _resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """(C, H, W) -> (C, h, w); area averaging when shrinking, bilinear when growing."""
+    if t.shape[1:] == (h, w):
+        return t
+    mode = "area" if t.shape[1] >= h and t.shape[2] >= w else "bilinear"
+    kw = {} if mode == "area" else {"align_corners": False}
+    return F.interpolate(t[None], size=(h, w), mode=mode, **kw)[0]
+
+
+def flip_stack(m: torch.Tensor) -> torch.Tensor:
+    """Mirror a 9-channel stack left-right; the normal's X component changes sign."""
+    m = torch.flip(m, dims=[-1])
+    m[..., 0, :, :] = -m[..., 0, :, :]
+    return m
+
+
+class IntrinsicsData(Dataset):
+    """M_s = (normal, albedo, reflection) -> (9, H, W) in network space."""
+
+    def __init__(self, root: Path, height: int, width: int):
+        self.ds = open_dataset(root, kinds=("intrinsics", "pbr"))
+        if len(self.ds) == 0:
+            raise DatasetError(f"{root}: the intrinsics dataset has no finished samples")
+        self.h, self.w = height, width
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
+        index, flip = item
+        layers = self.ds.load(index, INTRINSIC_LAYERS)
+        stack = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], axis=-1)
+        m = _resize(torch.from_numpy(stack).permute(2, 0, 1).contiguous(), self.h, self.w)
+        return flip_stack(m) if flip else m
+
+
+class RealImages(Dataset):
+    """I_r from a PBR dataset (its `rgb` layer) or a folder of JPG/PNG photos -> (3, H, W).
+
+    Photos are scaled to cover the training size and centre-cropped (aspect 1:2 by default).
+    """
+
+    def __init__(self, root: Path, height: int, width: int):
+        root = Path(root)
+        self.h, self.w = height, width
+        self.ds = None
+        if (root / "dataset.json").exists():
+            self.ds = open_dataset(root, kinds=("pbr",))
+            self.files: list[Path] = []
+            n = len(self.ds)
+        elif root.is_dir():
+            self.files = sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+            n = len(self.files)
+        else:
+            raise DatasetError(f"{root}: no such folder of images or PBR dataset")
+        if n == 0:
+            raise DatasetError(f"{root}: no images found (expected a PBR dataset or .jpg/.png files)")
+
+    def __len__(self) -> int:
+        return len(self.ds) if self.ds is not None else len(self.files)
+
+    def source_name(self, index: int) -> str:
+        return self.ds.rows[index]["file"] if self.ds is not None else str(self.files[index])
+
+    def load_photo(self, path: Path) -> np.ndarray:
+        try:
+            img = Image.open(path).convert("RGB")
+        except OSError as exc:
+            raise DatasetError(f"{path}: cannot read image ({exc})") from exc
+        scale = max(self.w / img.width, self.h / img.height)
+        size = (max(self.w, round(img.width * scale)), max(self.h, round(img.height * scale)))
+        img = img.resize(size, Image.Resampling.BICUBIC)
+        left, top = (img.width - self.w) // 2, (img.height - self.h) // 2
+        img = img.crop((left, top, left + self.w, top + self.h))
+        return np.asarray(img, dtype=np.float32) / 127.5 - 1.0  # photos are already sRGB-encoded
+
+    def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
+        index, flip = item
+        if self.ds is not None:
+            arr = to_network("rgb", self.ds.load(index, ["rgb"])["rgb"])
+            t = _resize(torch.from_numpy(arr).permute(2, 0, 1).contiguous(), self.h, self.w)
+        else:
+            t = torch.from_numpy(self.load_photo(self.files[index])).permute(2, 0, 1).contiguous()
+        return torch.flip(t, dims=[-1]) if flip else t
+
+
+class StepSampler(Sampler):
+    """Infinite batches of (index, flip); batch `s` depends only on (seed, stream, s, rank).
+
+    Epochs are seeded permutations of the dataset; the global batch (all ranks) takes
+    consecutive positions, each rank its own slice.
+    """
+
+    def __init__(self, n: int, batch: int, seed: int, stream: int, start_step: int = 0,
+                 rank: int = 0, world: int = 1, hflip: bool = True):
+        self.n, self.batch, self.seed, self.stream = n, batch, seed, stream
+        self.start, self.rank, self.world, self.hflip = start_step, rank, world, hflip
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _epoch(self, e: int) -> tuple[np.ndarray, np.ndarray]:
+        if e not in self._cache:
+            rng = np.random.default_rng([self.seed, self.stream, e])
+            self._cache = {e: (rng.permutation(self.n), rng.random(self.n) < 0.5)}
+        return self._cache[e]
+
+    def batch_at(self, step: int) -> list[tuple[int, bool]]:
+        out = []
+        for j in range(self.batch):
+            pos = (step * self.world + self.rank) * self.batch + j
+            perm, flips = self._epoch(pos // self.n)
+            k = pos % self.n
+            out.append((int(perm[k]), bool(flips[k]) and self.hflip))
+        return out
+
+    def __iter__(self) -> Iterator[list[tuple[int, bool]]]:
+        step = self.start
+        while True:
+            yield self.batch_at(step)
+            step += 1
+
+
+def infinite_loader(ds: Dataset, sampler: StepSampler, workers: int) -> Iterator[torch.Tensor]:
+    loader = DataLoader(ds, batch_sampler=sampler, num_workers=workers, persistent_workers=workers > 0,
+                        prefetch_factor=4 if workers > 0 else None)
+    return iter(loader)

@@ -1,0 +1,37 @@
+"""Loss building blocks shared by the Intrinsic Autoencoder and the baselines."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def gan_loss(logits: list[torch.Tensor], real: bool, kind: str) -> torch.Tensor:
+    """Multi-scale GAN loss, averaged over scales.
+
+    lsgan: mean (D - target)^2 (pix2pixHD/CycleGAN); bce: the paper's log-likelihood
+    formula, -[t log sigmoid(D) + (1 - t) log(1 - sigmoid(D))].
+    """
+    total = logits[0].new_zeros(())
+    for d in logits:
+        target = torch.full_like(d, 1.0 if real else 0.0)
+        if kind == "lsgan":
+            total = total + F.mse_loss(d.float(), target.float())
+        else:
+            total = total + F.binary_cross_entropy_with_logits(d.float(), target.float())
+    return total / len(logits)
+
+
+def cycle_loss(recon: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
+    """Smooth-L1 (Huber) distance, the paper's cycle consistency loss."""
+    return F.smooth_l1_loss(recon.float(), target.float(), beta=beta)
+
+
+def normal_length_loss(normals: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Mean |1 - ||n||_2| over pixels whose predicted normal is longer than `threshold`.
+
+    The synthetic maps have zero normals on the background; the threshold keeps the loss
+    from pushing background pixels to unit length.
+    """
+    length = normals.float().norm(dim=1)
+    weight = (length > threshold).float()
+    return ((1.0 - length).abs() * weight).sum() / weight.sum().clamp_min(1.0)

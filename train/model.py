@@ -1,0 +1,120 @@
+"""The Intrinsic Autoencoder (Section 3 of the paper) and its ablation switches.
+
+R renders intrinsics to images, H decomposes images into intrinsics; two cycles
+(rendering M_s -> R -> H, decomposition I_r -> H -> R) and the *shared* adversarial
+losses: D_I sees R(M_s) and R(H(I_r)) as fakes, D_M sees H(I_r) and H(R(M_s)).
+Each discriminator runs once per step on one concatenated batch (instance norm keeps
+samples independent), which keeps the multi-process gradient all-reduce simple.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import Config
+from .losses import cycle_loss, gan_loss, normal_length_loss
+from .networks import Decomposer, MultiscaleDiscriminator, make_renderer_net
+
+CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
+
+
+class IntrinsicAutoencoder(nn.Module):
+    def __init__(self, cfg: Config):
+        super().__init__()
+        m, self.loss_cfg = cfg.model, cfg.loss
+        self.inputs = [c for c in "NAF" if c in m.inputs]  # canonical order
+        self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks, m.r_local_enhancers, m.norm)
+        self.H = Decomposer(m.h_ngf, m.h_downsample, m.h_blocks, m.norm, m.normal_output)
+        self.D_I = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, m.norm)
+        self.D_M = MultiscaleDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales, m.norm)
+        self.normal_output = m.normal_output
+
+    # -------------------------------------------------------------- groups for optimisers
+    def generator_modules(self) -> dict[str, nn.Module]:
+        return {"R": self.R, "H": self.H}
+
+    def discriminator_modules(self) -> dict[str, nn.Module]:
+        return {"D_I": self.D_I, "D_M": self.D_M}
+
+    # -------------------------------------------------------------- inference
+    def select(self, m: torch.Tensor) -> torch.Tensor:
+        """The channels of a 9-channel stack that R takes (ablation `model.inputs`)."""
+        return torch.cat([m[:, CHANNELS[c]] for c in self.inputs], dim=1)
+
+    def render(self, m: torch.Tensor, **_) -> torch.Tensor:
+        return self.R(self.select(m))
+
+    def decompose(self, img: torch.Tensor) -> torch.Tensor:
+        return self.H(img)
+
+    # -------------------------------------------------------------- training
+    def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor) -> dict[str, torch.Tensor]:
+        lc = self.loss_cfg
+        out = {"M_s": m_s, "I_r": i_r, "fake_I": self.render(m_s), "fake_M": self.H(i_r)}
+        if lc.rendering_cycle:
+            out["rec_M"] = self.H(out["fake_I"])  # H(R(M_s))
+        if lc.decomposition_cycle:
+            out["rec_I"] = self.render(out["fake_M"])  # R(H(I_r))
+        return out
+
+    def discriminator_inputs(self, out: dict[str, torch.Tensor]) -> dict[str, tuple[torch.Tensor, list[str]]]:
+        """Which tensors each discriminator sees: (real, names of fakes)."""
+        shared = self.loss_cfg.shared_discriminator
+        fakes_i = ["fake_I"] + (["rec_I"] if shared and "rec_I" in out else [])
+        fakes_m = ["fake_M"] + (["rec_M"] if shared and "rec_M" in out else [])
+        return {"D_I": (out["I_r"], fakes_i), "D_M": (out["M_s"], fakes_m)}
+
+    def _disc(self, name: str) -> nn.Module:
+        return self.D_I if name == "D_I" else self.D_M
+
+    def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        lc = self.loss_cfg
+        logs: dict[str, torch.Tensor] = {}
+        total = out["fake_I"].new_zeros((), dtype=torch.float32)
+        if "rec_M" in out:
+            logs["G/ren_cycle"] = cycle_loss(self.select(out["rec_M"]), self.select(out["M_s"]), lc.smooth_l1_beta)
+            total = total + lc.w_ren * logs["G/ren_cycle"]
+        if "rec_I" in out:
+            logs["G/dec_cycle"] = cycle_loss(out["rec_I"], out["I_r"], lc.smooth_l1_beta)
+            total = total + lc.w_dec * logs["G/dec_cycle"]
+        if self.normal_output == "tanh" and lc.w_norm:
+            norm = normal_length_loss(out["fake_M"][:, :3], lc.normal_threshold)
+            if "rec_M" in out:
+                norm = norm + normal_length_loss(out["rec_M"][:, :3], lc.normal_threshold)
+            logs["G/normal_length"] = norm
+            total = total + lc.w_norm * norm
+        for dname, (_, fakes) in self.discriminator_inputs(out).items():
+            logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))
+            chunks = [torch.chunk(l, len(fakes)) for l in logits]
+            for k, f in enumerate(fakes):
+                adv = gan_loss([c[k] for c in chunks], True, lc.gan)
+                logs[f"G/adv_{dname}_{f}"] = adv
+                total = total + lc.w_adv * adv
+        logs["G/total"] = total
+        return total, {k: float(v.detach()) for k, v in logs.items()}
+
+    def discriminator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        """Real vs the (detached) fakes; halved as in pix2pixHD so D learns at half G's pace."""
+        lc = self.loss_cfg
+        logs: dict[str, torch.Tensor] = {}
+        total = out["fake_I"].new_zeros((), dtype=torch.float32)
+        for dname, (real, fakes) in self.discriminator_inputs(out).items():
+            batch = torch.cat([real] + [out[f].detach() for f in fakes])
+            chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._disc(dname)(batch)]
+            loss_real = gan_loss([c[0] for c in chunks], True, lc.gan)
+            loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan) for k in range(len(fakes))) / len(fakes)
+            logs[f"D/{dname}_real"], logs[f"D/{dname}_fake"] = loss_real, loss_fake
+            total = total + 0.5 * (loss_real + loss_fake)
+        logs["D/total"] = total
+        return total, {k: float(v.detach()) for k, v in logs.items()}
+
+    def visuals(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I") if k in out}
+
+
+def build_model(cfg: Config) -> nn.Module:
+    if cfg.model.kind == "iae":
+        return IntrinsicAutoencoder(cfg)
+    from . import baselines
+
+    return baselines.build(cfg)
