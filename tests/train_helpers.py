@@ -10,8 +10,11 @@ from PIL import Image
 from blender_gen.dataset import append_manifest, sample_filename, sha256_file, write_exr
 
 
-def tiny_intrinsics(root: Path, n: int = 4, h: int = 32, w: int = 64, seed: int = 0) -> Path:
-    """Car-like blobs: an ellipse with smooth normals, flat albedo, a reflection gradient."""
+def tiny_intrinsics(root: Path, n: int = 4, h: int = 32, w: int = 64, seed: int = 0, kind: str = "intrinsics") -> Path:
+    """Car-like blobs: an ellipse with smooth normals, flat albedo, a reflection gradient.
+
+    kind="pbr" adds an `rgb` layer (a shaded version of the same blob) for evaluation tests.
+    """
     rng = np.random.default_rng(seed)
     (root / "samples").mkdir(parents=True, exist_ok=True)
     yy, xx = np.mgrid[0:h, 0:w]
@@ -27,12 +30,15 @@ def tiny_intrinsics(root: Path, n: int = 4, h: int = 32, w: int = 64, seed: int 
         refl = inside[..., None] * (0.3 + 0.5 * (1 - yy / h))[..., None] * np.array([0.8, 0.9, 1.0])
         layers = {"normal": normal, "albedo": albedo, "reflection": refl, "mask": inside[..., None].astype(float),
                   "material": inside[..., None] * 19.0}
+        if kind == "pbr":
+            shade = np.clip(normal[..., 2:3] * 0.8 + 0.2, 0, 1)
+            layers["rgb"] = np.where(inside[..., None], albedo * shade + 0.3 * refl, np.array([0.4, 0.45, 0.5]))
         write_exr(root / sample_filename(i), layers)
         append_manifest(root / "manifest.jsonl", {"index": i, "file": sample_filename(i),
                                                    "sha256": sha256_file(root / sample_filename(i)),
                                                    "car": {"name": "blob", "category": "sedan"}, "paint": "x",
                                                    "envmap": {"name": "none", "rotation_deg": 0}})
-    (root / "dataset.json").write_text(json.dumps({"kind": "intrinsics", "resolution": [w, h], "count": n,
+    (root / "dataset.json").write_text(json.dumps({"kind": kind, "resolution": [w, h], "count": n,
                                                    "count_requested": n, "shard": [0, 1]}))
     return root
 

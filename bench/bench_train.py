@@ -1,0 +1,91 @@
+"""Trainer benchmark: iterations/s and peak memory at 128x256, and data-loader throughput.
+
+Each model configuration runs in its own process so its peak RSS is its own. Prints
+measured figures; nothing is asserted. Usage: python bench/bench_train.py
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def one(config: str, steps: int, h: int, w: int, kind: str) -> dict:
+    import torch
+
+    from train.config import load_config
+    from train.loop import discriminator_step, generator_step
+    from train.model import build_model
+
+    cfg = load_config(config, [f"data.height={h}", f"data.width={w}", f"model.kind={kind}", "data.batch_size=1"])
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    g = [p for m in model.generator_modules().values() for p in m.parameters()]
+    d = [p for m in model.discriminator_modules().values() for p in m.parameters()]
+    opt_g, opt_d = torch.optim.Adam(g, 2e-4, betas=(0.5, 0.999)), torch.optim.Adam(d, 2e-4, betas=(0.5, 0.999))
+    m_s, i_r = torch.rand(1, 9, h, w) * 2 - 1, torch.rand(1, 3, h, w) * 2 - 1
+    out, _ = generator_step(model, opt_g, g, m_s, i_r)  # warm-up
+    discriminator_step(model, opt_d, d, out)
+    t = time.perf_counter()
+    for _ in range(steps):
+        out, _ = generator_step(model, opt_g, g, m_s, i_r)
+        discriminator_step(model, opt_d, d, out)
+    dt = time.perf_counter() - t
+    return {"config": config, "kind": kind, "resolution": f"{h}x{w}", "batch": 1, "it_per_s": steps / dt,
+            "params_M": sum(p.numel() for p in model.parameters()) / 1e6,
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def loader(n_samples: int, workers: int) -> dict:
+    from train.data import IntrinsicsData, StepSampler, infinite_loader
+
+    tmp = Path(tempfile.mkdtemp(prefix="iae_bench_data_"))
+    subprocess.run([sys.executable, "-m", "blender_gen.cli", "intrinsics", "--out", str(tmp / "d"), "--count", "64",
+                    "--workers", "2", "--quiet"], cwd=ROOT, check=True, capture_output=True)
+    ds = IntrinsicsData(tmp / "d", 256, 512)
+    batch = 4
+    it = infinite_loader(ds, StepSampler(len(ds), batch, 0, 0), workers)
+    for _ in range(4):  # let the workers start
+        next(it)
+    t = time.perf_counter()
+    for _ in range(n_samples // batch):
+        next(it)
+    dt = time.perf_counter() - t
+    return {"loader_workers": workers, "resolution": "256x512", "decoded_samples_per_s": n_samples / dt}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--one", nargs=5, metavar=("CONFIG", "STEPS", "H", "W", "KIND"))
+    ap.add_argument("--kinds", nargs="+", default=["iae"])
+    args = ap.parse_args()
+    if args.one:
+        c, s, h, w, k = args.one
+        print(json.dumps(one(c, int(s), int(h), int(w), k)))
+        return
+    results = []
+    for kind in args.kinds:
+        for config, steps in (("paper", 3), ("cpu-small", 20)):
+            proc = subprocess.run([sys.executable, __file__, "--one", config, str(steps), "128", "256", kind],
+                                  capture_output=True, text=True, cwd=ROOT, check=True)
+            r = json.loads(proc.stdout.strip().splitlines()[-1])
+            results.append(r)
+            print(f"train {kind:8s} {config:9s} widths, 128x256 batch 1: {r['it_per_s']:.2f} it/s, "
+                  f"{r['params_M']:.1f} M parameters, peak RSS {r['peak_rss_mib']:.0f} MiB", flush=True)
+    if args.kinds == ["iae"]:
+        r = loader(200, 2)
+        results.append(r)
+        print(f"data loader 256x512, 2 workers: {r['decoded_samples_per_s']:.1f} decoded intrinsics samples/s", flush=True)
+    print(json.dumps({"machine": {"cpus": os.cpu_count()}, "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

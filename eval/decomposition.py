@@ -1,0 +1,127 @@
+"""Decomposition errors against ground truth (the paper's Table 3), on the object mask.
+
+Normals: angle between the normalised prediction and the truth (mean, median, % under
+11.25 / 22.5 / 30 degrees). Albedo and reflection: L1 on the 0-255 sRGB scale (the paper's
+scale) and on linear values; albedo also scale-invariantly (albedo is defined up to scale).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from blender_gen.conversions import linear_to_srgb
+from blender_gen.dataset import DatasetError, atomic_write_bytes, atomic_write_json, open_dataset
+
+THRESHOLDS = (11.25, 22.5, 30.0)
+
+
+def normal_angles(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Angles in degrees between (N, 3) predictions (normalised here) and unit truths."""
+    p = pred / np.maximum(np.linalg.norm(pred, axis=-1, keepdims=True), 1e-8)
+    g = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-8)
+    return np.degrees(np.arccos(np.clip(np.sum(p * g, axis=-1), -1.0, 1.0)))
+
+
+def l1_srgb255(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Mean absolute difference of 8-bit sRGB values (both clipped to [0, 1] first)."""
+    return float(np.mean(np.abs(linear_to_srgb(pred) - linear_to_srgb(gt))) * 255.0)
+
+
+def l1_linear(pred: np.ndarray, gt: np.ndarray) -> float:
+    return float(np.mean(np.abs(pred - gt)))
+
+
+def scale_invariant_l1(pred: np.ndarray, gt: np.ndarray) -> float:
+    """L1 after the least-squares scalar that best maps the prediction onto the truth."""
+    denom = float(np.sum(pred * pred))
+    alpha = float(np.sum(pred * gt)) / denom if denom > 0 else 0.0
+    return float(np.mean(np.abs(alpha * pred - gt)))
+
+
+def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tuple[dict, np.ndarray]:
+    on = gt["mask"][..., 0] >= 0.5
+    if not on.any():
+        raise DatasetError("ground-truth mask is empty")
+    ang = normal_angles(pred["normal"][on], gt["normal"][on])
+    row = {
+        "pixels": int(on.sum()),
+        "normal_mean_deg": float(ang.mean()),
+        "normal_median_deg": float(np.median(ang)),
+        **{f"normal_under_{t:g}_pct": float((ang < t).mean() * 100.0) for t in THRESHOLDS},
+        "albedo_l1_srgb255": l1_srgb255(pred["albedo"][on], gt["albedo"][on]),
+        "albedo_l1_linear": l1_linear(pred["albedo"][on], gt["albedo"][on]),
+        "albedo_si_l1_linear": scale_invariant_l1(pred["albedo"][on], gt["albedo"][on]),
+        "reflection_l1_srgb255": l1_srgb255(pred["reflection"][on], gt["reflection"][on]),
+        "reflection_l1_linear": l1_linear(pred["reflection"][on], gt["reflection"][on]),
+    }
+    return row, ang
+
+
+def score_predictions(data: Path, predictions: Path, progress: bool = True) -> tuple[list[dict], dict]:
+    """Per-sample rows and a summary: sample means, plus normal statistics over all pixels."""
+    gt_ds = open_dataset(data, kinds=("pbr",))
+    pred_ds = open_dataset(predictions, kinds=("predictions", "intrinsics", "pbr"))
+    preds = {r["index"]: k for k, r in enumerate(pred_ds.rows)}
+    rows, all_angles = [], []
+    missing = [r["index"] for r in gt_ds.rows if r["index"] not in preds]
+    if len(missing) == len(gt_ds.rows):
+        raise DatasetError(f"{predictions}: no prediction matches a sample index of {data}")
+    for i, row in enumerate(tqdm(gt_ds.rows, desc="score", unit="sample", disable=not progress)):
+        if row["index"] not in preds:
+            continue
+        gt = gt_ds.load(i, ["normal", "albedo", "reflection", "mask"])
+        pred = pred_ds.load(preds[row["index"]], ["normal", "albedo", "reflection"])
+        if pred["normal"].shape != gt["normal"].shape:
+            raise DatasetError(f"{predictions}: sample {row['index']} is {pred['normal'].shape[1]}x"
+                               f"{pred['normal'].shape[0]}, ground truth {gt['normal'].shape[1]}x{gt['normal'].shape[0]}")
+        scores, ang = score_sample(pred, gt)
+        rows.append({"index": row["index"], "car": row["car"]["name"], **scores})
+        all_angles.append(ang)
+    ang = np.concatenate(all_angles)
+    metric_keys = [k for k in rows[0] if k not in ("index", "car", "pixels")]
+    summary = {
+        "samples": len(rows),
+        "missing_predictions": len(missing),
+        **{k: float(np.mean([r[k] for r in rows])) for k in metric_keys},
+        "pixels": int(ang.size),
+        "normal_median_deg_all_pixels": float(np.median(ang)),
+        **{f"normal_under_{t:g}_pct_all_pixels": float((ang < t).mean() * 100.0) for t in THRESHOLDS},
+        "data": str(Path(data).resolve()),
+        "predictions": str(Path(predictions).resolve()),
+    }
+    return rows, summary
+
+
+def write_results(rows: list[dict], summary: dict, out: Path) -> tuple[Path, Path]:
+    """`out` is the summary JSON; the per-sample CSV goes beside it."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    csv_path = out.with_suffix(".csv")
+    import io
+
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(csv_path, buf.getvalue().encode())
+    atomic_write_json(out, summary)
+    return out, csv_path
+
+
+def format_table(summary: dict) -> str:
+    return "\n".join([
+        f"decomposition errors over {summary['samples']} samples ({summary['pixels']} object pixels)",
+        f"  normal      mean {summary['normal_mean_deg']:.2f} deg, median {summary['normal_median_deg']:.2f} deg, "
+        + ", ".join(f"<{t:g} deg {summary[f'normal_under_{t:g}_pct']:.1f}%" for t in THRESHOLDS),
+        f"  albedo      L1 {summary['albedo_l1_srgb255']:.2f} (0-255 sRGB), {summary['albedo_l1_linear']:.4f} (linear), "
+        f"scale-invariant {summary['albedo_si_l1_linear']:.4f}",
+        f"  reflection  L1 {summary['reflection_l1_srgb255']:.2f} (0-255 sRGB), {summary['reflection_l1_linear']:.4f} (linear)",
+    ])
+
+
+def summary_json(path: Path) -> dict:
+    return json.loads(Path(path).read_text())

