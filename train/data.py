@@ -143,6 +143,9 @@ class StepSampler(Sampler):
 
 
 def infinite_loader(ds: Dataset, sampler: StepSampler, workers: int) -> Iterator[torch.Tensor]:
+    # A private generator: creating the iterator draws a base seed, which must not shift the
+    # global RNG that training (style codes, image pool) uses and checkpoints restore.
+    gen = torch.Generator().manual_seed(sampler.seed * 1000 + sampler.stream)
     loader = DataLoader(ds, batch_sampler=sampler, num_workers=workers, persistent_workers=workers > 0,
-                        prefetch_factor=4 if workers > 0 else None)
+                        prefetch_factor=4 if workers > 0 else None, generator=gen)
     return iter(loader)

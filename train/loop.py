@@ -281,7 +281,10 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
 @torch.no_grad()
 def write_grid(model, fixed_m: torch.Tensor, fixed_i: torch.Tensor, path: Path, autocast=nullcontext) -> None:
     model.eval()
-    with autocast():
+    # a private RNG: grids use the same random codes every time and never shift training's
+    devices = [fixed_m.device] if fixed_m.is_cuda else []
+    with torch.random.fork_rng(devices=devices), autocast():
+        torch.manual_seed(0)
         out = model.forward_all(fixed_m, fixed_i)
     _save_png(path, sample_grid({k: v.float() for k, v in model.visuals(out).items()}))
     model.train()

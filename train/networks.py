@@ -13,6 +13,8 @@ from torch import nn
 def norm_layer(kind: str, channels: int) -> nn.Module:
     if kind == "instance":
         return nn.InstanceNorm2d(channels, affine=False)
+    if kind == "none":
+        return nn.Identity()
     return nn.BatchNorm2d(channels)
 
 
