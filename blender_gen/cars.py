@@ -340,8 +340,8 @@ def _small_parts(spec: CarSpec) -> dict[str, Mesh]:
             (rear_x + s + 0.02, yt, spec.tail_height - 0.12), (0.2, 0.3, 0.14), 3.0, 10))
         # Door mirror on the door just behind the A pillar.
         sm = spec.windshield_s + 0.15
-        ym = side * (_body_surface_y(spec, sm, spec.belt_height - 0.02) + 0.1)
-        zm = spec.belt_height + 0.1
+        ym = side * (float(_plan_half_width(spec, np.array([sm]))[0]) + 0.05)  # just outside the door skin
+        zm = spec.belt_height + 0.03
         parts["mirrors"].extend(superellipsoid((float(_x(spec, sm)), ym, zm), (0.12, 0.2, 0.13), 3.0, 8))
         parts["mirror_glass"].extend(superellipsoid((float(_x(spec, sm)) - 0.06, ym, zm), (0.015, 0.16, 0.1), 4.0, 6))
         # Door handles, one per door on this side.
@@ -370,11 +370,12 @@ def _small_parts(spec: CarSpec) -> dict[str, Mesh]:
         (0.0, 0.0, spec.clearance + 0.03), (L - 0.7, 0.88 * W, 0.05), 6.0, 10))
     parts["exhaust"].extend(superellipsoid(
         (rear_x + 0.15, -0.28 * W, spec.clearance + 0.08), (0.3, 0.08, 0.08), 2.0, 10))
-    cab_mid = 0.5 * (spec.windshield_s + spec.roof_end_s)
+    # Seats and dashboard seen through the glass: behind the windshield, below the roof line.
+    s0, s1 = spec.windshield_s + 0.9 * spec.windshield_run, spec.roof_end_s
+    top = spec.belt_height + 0.5 * (spec.height - spec.belt_height)
     parts["interior"].extend(superellipsoid(
-        (float(_x(spec, cab_mid)), 0.0, 0.5 * (spec.belt_height + spec.height) - 0.1),
-        (0.7 * (spec.roof_end_s - spec.windshield_s), 0.8 * W * spec.tumblehome, 0.5 * (spec.height - spec.belt_height)),
-        3.0, 10))
+        (float(_x(spec, 0.5 * (s0 + s1))), 0.0, 0.5 * (spec.belt_height - 0.1 + top)),
+        (max(s1 - s0, 0.3), 0.8 * W * spec.tumblehome, top - spec.belt_height + 0.1), 3.0, 10))
     if not spec.roof_rails:
         del parts["roof_rails"]
     return parts

@@ -139,6 +139,13 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -
     if rules is not None and not Path(rules).is_file():
         _fail(f"--car-rules {rules}: no such file")
     cars = check_cars(o["cars"] or (default_cars,), rules)
+    if rules is not None:
+        from .rules import RulesError, load_rules
+
+        try:
+            load_rules(rules)
+        except RulesError as exc:
+            _fail(str(exc))
     envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or ("procedural",)
     return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
                   car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
@@ -173,6 +180,26 @@ def intrinsics(**o) -> None:
 def pbr(**o) -> None:
     """Render Cycles path-traced images with their ground-truth intrinsics."""
     _run(_build_recipe("pbr", "procedural:heldout", 8, o), o)
+
+
+@main.command("cars")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--cars", "cars", multiple=True, help="Selectors or model files (default: the whole catalogue).")
+@click.option("--car-rules", type=click.Path(dir_okay=False), default=None)
+@click.option("--columns", default=4, show_default=True, type=int)
+def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: int) -> None:
+    """A contact sheet (one PNG) of car models in a fixed view, to judge them at a glance."""
+    from .contact_sheet import contact_sheet
+    from .rules import RulesError
+
+    if car_rules is not None and not Path(car_rules).is_file():
+        _fail(f"--car-rules {car_rules}: no such file")
+    chosen = check_cars(cars or ("procedural",), car_rules)
+    try:
+        path = contact_sheet(out, chosen, str(Path(car_rules).resolve()) if car_rules else None, columns=columns)
+    except (RulesError, ValueError) as exc:
+        _fail(str(exc))
+    click.echo(str(path))
 
 
 @main.command("inspect")

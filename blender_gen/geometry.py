@@ -12,22 +12,36 @@ import numpy as np
 
 @dataclass
 class Mesh:
-    """Vertices (N, 3) in metres and quad faces (F, 4) as vertex indices."""
+    """Vertices (N, 3) in metres and faces (F, k) as vertex indices (quads or triangles).
+
+    `loop_normals` (F, k, 3), when set, are the normals a model's author gave each corner
+    (imported models keep their own shading); otherwise shading is smooth.
+    """
 
     verts: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    loop_normals: np.ndarray | None = None
 
     def extend(self, other: "Mesh") -> "Mesh":
         offset = len(self.verts)
+        if len(self.faces) and self.faces.shape[1] != other.faces.shape[1]:
+            raise ValueError("cannot join meshes of triangles and quads")
+        if len(self.faces) == 0:
+            self.loop_normals = other.loop_normals
+        elif (self.loop_normals is None) != (other.loop_normals is None):
+            raise ValueError("cannot join meshes with and without loop normals")
+        elif self.loop_normals is not None:
+            self.loop_normals = np.concatenate([self.loop_normals, other.loop_normals])
         self.verts = np.concatenate([self.verts, other.verts])
-        self.faces = np.concatenate([self.faces, other.faces + offset])
+        self.faces = np.concatenate([self.faces, other.faces + offset]) if len(self.faces) else other.faces + offset
         return self
 
     def subset(self, face_ids: np.ndarray) -> "Mesh":
         """The faces `face_ids` with only the vertices they use."""
         faces = self.faces[face_ids]
         used, inverse = np.unique(faces, return_inverse=True)
-        return Mesh(self.verts[used].copy(), inverse.reshape(faces.shape))
+        normals = None if self.loop_normals is None else self.loop_normals[face_ids]
+        return Mesh(self.verts[used].copy(), inverse.reshape(faces.shape), normals)
 
     def flipped(self, mask: np.ndarray | None = None) -> "Mesh":
         """Reverse the winding of all faces, or of those where `mask` is true."""

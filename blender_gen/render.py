@@ -22,6 +22,9 @@ from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
 from .materials import load_materials
 from .recipe import Recipe, block_seed, sample_seed
+from .rules import ImportedSpec, imported_specs, load_rules
+
+MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
 
@@ -83,8 +86,14 @@ class SampleRenderer:
 
     # ------------------------------------------------------------------ resources
     def _resolve_cars(self) -> list:
-        catalogue = load_catalogue()
-        return select_cars(catalogue, ",".join(self.recipe.cars))
+        """Catalogue selectors and model files, in the recipe's order."""
+        files = [c for c in self.recipe.cars if Path(c).suffix.lower() in MODEL_SUFFIXES]
+        names = [c for c in self.recipe.cars if c not in files]
+        specs = select_cars(load_catalogue(), ",".join(names)) if names else []
+        if files:
+            self._rules = load_rules(self.recipe.car_rules)
+            specs += imported_specs(files, self._rules)
+        return specs
 
     def _env_image(self, name: str) -> bpy.types.Image:
         img = self._env_images.get(name)
@@ -109,7 +118,14 @@ class SampleRenderer:
             part_mat, tinted = load_part_materials()
             if spec.tinted_rear:
                 part_mat = {**part_mat, "window_side": tinted}
-            car = S.add_car(spec.name, spec.category, build_car(spec), part_mat, self.materials, self.shader, self.scene)
+            if isinstance(spec, ImportedSpec):
+                from .importer import import_model
+
+                parts, source = import_model(spec.path, self._rules).parts, f"import:{Path(spec.path).name}"
+            else:
+                parts, source = build_car(spec), "procedural"
+            car = S.add_car(spec.name, spec.category, parts, part_mat, self.materials, self.shader, self.scene)
+            car.source = source
             self._cars[spec.name] = car
         return car
 

@@ -188,17 +188,20 @@ def car_material(env_image: bpy.types.Image, physical: bool = False) -> tuple[bp
 
 
 def mesh_from_numpy(name: str, mesh: Mesh) -> bpy.types.Mesh:
-    """A smooth-shaded Blender mesh from quads, built with foreach_set (fast)."""
+    """A Blender mesh built with foreach_set (fast): smooth-shaded, or with the mesh's own
+    per-corner normals when it carries them (imported models)."""
     me = bpy.data.meshes.new(name)
-    n_faces = len(mesh.faces)
+    n_faces, k = mesh.faces.shape
     me.vertices.add(len(mesh.verts))
     me.vertices.foreach_set("co", mesh.verts.astype(np.float32).ravel())
-    me.loops.add(n_faces * 4)
+    me.loops.add(n_faces * k)
     me.loops.foreach_set("vertex_index", mesh.faces.astype(np.int32).ravel())
     me.polygons.add(n_faces)
-    me.polygons.foreach_set("loop_start", np.arange(0, 4 * n_faces, 4, dtype=np.int32))
+    me.polygons.foreach_set("loop_start", np.arange(0, k * n_faces, k, dtype=np.int32))
     me.update(calc_edges=True)
     me.shade_smooth()
+    if mesh.loop_normals is not None:
+        me.normals_split_custom_set(mesh.loop_normals.reshape(-1, 3).tolist())
     return me
 
 

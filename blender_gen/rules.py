@@ -1,0 +1,201 @@
+"""Rules that map a real car model's geometry to the catalogue's parts (no bpy here).
+
+A rules file (TOML) says how a model is oriented and sized, and which faces become which
+part: by object name, by material name, or by texture-palette region (the texture colour
+under a face, or the face's UV position in a palette texture). The first matching rule
+wins; unmatched faces go to `default_part` and are reported.
+
+```toml
+[model]
+forward = "-Y"        # axis (after import, Blender's Z-up space) that points to the car's front
+up = "+Z"
+length = 4.5          # metres, bumper to bumper, after normalisation
+default_part = "body"
+category = "sedan"
+
+[files."van.glb"]     # per-file overrides of [model]
+category = "van"
+length = 5.0
+
+[[rule]]
+match = "palette"     # "object", "material" or "palette"
+objects = ["body*"]   # optional: only faces of these objects (glob on names)
+uv_min = [0.0625, 0.0]  # palette: a UV box ...
+uv_max = [0.125, 0.25]
+# color_min = [0.8, 0.85, 0.9]  # ... and/or an sRGB colour range of the texture under the face
+# color_max = [1.0, 1.0, 1.0]
+part = "windows"      # a catalogue part, or "windows" / "bumpers" (split by facing / position)
+```
+"""
+from __future__ import annotations
+
+import fnmatch
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .cars import CATEGORIES, PARTS
+
+AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+SPLIT_PARTS = {"windows": ("windshield", "window_side", "window_rear"), "bumpers": ("bumper_front", "bumper_rear")}
+_MODEL_KEYS = {"forward", "up", "length", "default_part", "category"}
+_RULE_KEYS = {"match", "pattern", "objects", "part", "uv_min", "uv_max", "color_min", "color_max"}
+
+
+class RulesError(ValueError):
+    """A rules file or a model that the rules cannot handle; names the file and the rule."""
+
+
+@dataclass(frozen=True)
+class Rule:
+    index: int
+    match: str
+    part: str
+    pattern: str | None = None
+    objects: tuple[str, ...] | None = None
+    uv_min: tuple[float, float] | None = None
+    uv_max: tuple[float, float] | None = None
+    color_min: tuple[float, float, float] | None = None
+    color_max: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    forward: str = "+X"
+    up: str = "+Z"
+    length: float = 4.5
+    default_part: str = "body"
+    category: str = "sedan"
+
+
+@dataclass
+class Rules:
+    path: Path
+    model: ModelSettings
+    files: dict[str, ModelSettings] = field(default_factory=dict)
+    rules: list[Rule] = field(default_factory=list)
+
+    def settings_for(self, model_path: str | Path) -> ModelSettings:
+        return self.files.get(Path(model_path).name, self.model)
+
+
+@dataclass(frozen=True)
+class ImportedSpec:
+    """A model file in a recipe's car list (the counterpart of a catalogue CarSpec)."""
+
+    name: str
+    category: str
+    path: str
+    tinted_rear: bool = False
+    split: str = "import"
+
+
+def imported_specs(files: list[str], rules: Rules) -> list[ImportedSpec]:
+    return [ImportedSpec(Path(f).stem, rules.settings_for(f).category, str(f)) for f in files]
+
+
+def base_name(name: str) -> str:
+    """Blender's name without the '.001' suffix it adds to duplicates."""
+    return re.sub(r"\.\d{3,}$", "", name)
+
+
+def _globs(value, where: str) -> tuple[str, ...]:
+    if isinstance(value, str):
+        return (value,)
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return tuple(value)
+    raise RulesError(f"{where}: expected a name pattern or a list of them, got {value!r}")
+
+
+def _vec(value, n: int, where: str) -> tuple[float, ...]:
+    if not (isinstance(value, list) and len(value) == n and all(isinstance(v, (int, float)) for v in value)):
+        raise RulesError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
+def _settings(data: dict, base: ModelSettings, where: str) -> ModelSettings:
+    unknown = set(data) - _MODEL_KEYS
+    if unknown:
+        raise RulesError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(_MODEL_KEYS)}")
+    merged = {**base.__dict__, **data}
+    s = ModelSettings(**merged)
+    if s.forward not in AXES or s.up not in AXES:
+        raise RulesError(f"{where}: forward and up must be one of {AXES}, got {s.forward!r}, {s.up!r}")
+    if s.forward[1] == s.up[1]:
+        raise RulesError(f"{where}: forward ({s.forward}) and up ({s.up}) must be different axes")
+    if not isinstance(s.length, (int, float)) or s.length <= 0:
+        raise RulesError(f"{where}: length must be a positive number of metres, got {s.length!r}")
+    if s.default_part not in PARTS:
+        raise RulesError(f"{where}: default_part {s.default_part!r} is not a part; parts: {list(PARTS)}")
+    if s.category not in CATEGORIES:
+        raise RulesError(f"{where}: category {s.category!r} is not one of {CATEGORIES}")
+    return s
+
+
+def load_rules(path: str | Path) -> Rules:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise RulesError(f"--car-rules {path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise RulesError(f"{path}: not valid TOML ({exc})") from None
+    unknown = set(data) - {"model", "files", "rule"}
+    if unknown:
+        raise RulesError(f"{path}: unknown section(s) {sorted(unknown)}; expected [model], [files.NAME], [[rule]]")
+    model = _settings(data.get("model", {}), ModelSettings(), f"{path} [model]")
+    files = {name: _settings(v, model, f"{path} [files.{name!r}]") for name, v in data.get("files", {}).items()}
+    rules = []
+    for i, r in enumerate(data.get("rule", []), start=1):
+        where = f"{path} rule #{i}"
+        extra = set(r) - _RULE_KEYS
+        if extra:
+            raise RulesError(f"{where}: unknown key(s) {sorted(extra)}; allowed: {sorted(_RULE_KEYS)}")
+        match, part = r.get("match"), r.get("part")
+        if match not in ("object", "material", "palette"):
+            raise RulesError(f"{where}: match must be 'object', 'material' or 'palette', got {match!r}")
+        if part not in PARTS and part not in SPLIT_PARTS:
+            raise RulesError(f"{where}: part {part!r} is not a part; parts: {list(PARTS) + list(SPLIT_PARTS)}")
+        if match in ("object", "material") and not isinstance(r.get("pattern"), str):
+            raise RulesError(f"{where}: a '{match}' rule needs pattern = \"NAME-GLOB\"")
+        rule = Rule(
+            index=i, match=match, part=part, pattern=r.get("pattern"),
+            objects=_globs(r["objects"], where + " objects") if "objects" in r else None,
+            uv_min=_vec(r["uv_min"], 2, where + " uv_min") if "uv_min" in r else None,
+            uv_max=_vec(r["uv_max"], 2, where + " uv_max") if "uv_max" in r else None,
+            color_min=_vec(r["color_min"], 3, where + " color_min") if "color_min" in r else None,
+            color_max=_vec(r["color_max"], 3, where + " color_max") if "color_max" in r else None,
+        )
+        if match == "palette":
+            has_uv = rule.uv_min is not None and rule.uv_max is not None
+            has_col = rule.color_min is not None and rule.color_max is not None
+            if not (has_uv or has_col):
+                raise RulesError(f"{where}: a palette rule needs uv_min/uv_max or color_min/color_max")
+        rules.append(rule)
+    if not rules:
+        raise RulesError(f"{path}: no [[rule]] entries")
+    return Rules(path, model, files, rules)
+
+
+def face_part(rules: Rules, obj: str, material: str | None, uv, colour) -> Rule | None:
+    """The first rule that matches a face (object base name, material, UV centroid, texture sRGB)."""
+    obj = base_name(obj)
+    for rule in rules.rules:
+        if rule.objects is not None and not any(fnmatch.fnmatchcase(obj, g) for g in rule.objects):
+            continue
+        if rule.match == "object":
+            if fnmatch.fnmatchcase(obj, rule.pattern):
+                return rule
+        elif rule.match == "material":
+            if material is not None and fnmatch.fnmatchcase(base_name(material), rule.pattern):
+                return rule
+        else:
+            ok = True
+            if rule.uv_min is not None:
+                ok &= uv is not None and all(lo <= v <= hi for v, lo, hi in zip(uv, rule.uv_min, rule.uv_max))
+            if rule.color_min is not None:
+                ok &= colour is not None and all(lo <= c <= hi for c, lo, hi in zip(colour, rule.color_min, rule.color_max))
+            if ok:
+                return rule
+    return None
