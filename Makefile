@@ -20,9 +20,23 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+DEMO := $(OUT)/demo
+DEMO_STEPS ?= 300
+
+# The whole pipeline on built-in defaults, small: synthetic intrinsics, two unpaired PBR sets
+# (one as the "real" training images, one held out for evaluation), a short cpu-small
+# training run, and the evaluation report. Every step resumes if interrupted.
 demo: $(STAMP)
-	$(VENV)/bin/iae-gen intrinsics --out $(OUT)/demo/intrinsics --count 24 --workers 2
-	$(VENV)/bin/iae-gen inspect $(OUT)/demo/intrinsics --grid $(OUT)/demo/intrinsics_grid.png
+	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics --count 96 --workers 2
+	$(VENV)/bin/iae-gen inspect $(DEMO)/intrinsics --grid $(DEMO)/intrinsics_grid.png --quiet
+	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_real --count 24 --seed 1 --workers 2
+	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_eval --count 12 --seed 2 --workers 2
+	$(VENV)/bin/iae-gen cars --out $(DEMO)
+	$(VENV)/bin/iae-train fit --config cpu-small --intrinsics $(DEMO)/intrinsics --real $(DEMO)/pbr_real \
+		--run-dir $(DEMO)/run --max-steps $(DEMO_STEPS)
+	$(VENV)/bin/iae-eval report $(DEMO)/run --data $(DEMO)/pbr_eval --real $(DEMO)/pbr_real \
+		--out $(DEMO)/report --limit 24 --quiet
+	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"
 
 test: $(STAMP)
 	$(PY) -m pytest -q
@@ -30,6 +44,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/bench_generate.py
 	$(PY) bench/bench_pbr.py --views 3 --samples 4 8 16 --reference 128
+	$(PY) bench/bench_cars.py
+	$(PY) bench/bench_train.py --kinds iae cyclegan munit
+	$(PY) bench/bench_train.py
+	$(PY) bench/bench_eval.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache

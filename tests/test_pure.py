@@ -152,3 +152,18 @@ def test_torn_last_manifest_line_is_dropped(tmp_path):
     m.write_text('{"index": 0}\n{"ind\n{"index": 2}\n')
     with pytest.raises(ValueError, match="line 2"):
         read_manifest(m)
+
+
+def test_dimensions_per_category_are_real_world_metres():
+    ranges = {"sedan": (4.3, 5.0), "hatchback": (3.6, 4.3), "station_wagon": (4.5, 5.0), "suv": (4.4, 5.0),
+              "minivan": (4.7, 5.2), "van": (4.7, 5.5)}
+    heights = {"sedan": (1.35, 1.5), "hatchback": (1.4, 1.6), "station_wagon": (1.4, 1.6), "suv": (1.6, 1.85),
+               "minivan": (1.65, 1.85), "van": (1.9, 2.5)}
+    for spec in load_catalogue().values():
+        pts = np.concatenate([m.verts for m in build_car(spec).values()])
+        ext = pts.max(axis=0) - pts.min(axis=0)
+        lo, hi = ranges[spec.category]
+        assert lo <= ext[0] <= hi + 0.1, (spec.name, ext)
+        lo, hi = heights[spec.category]
+        assert lo <= ext[2] <= hi + 0.1, (spec.name, ext)
+        assert 1.6 <= ext[1] <= 2.45, (spec.name, ext)  # width including mirrors (a 2 m van: 2.3 m)

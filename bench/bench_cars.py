@@ -1,0 +1,90 @@
+"""Car model benchmark: build/import time per model; samples/s when models are reused for
+several views, switched every view, or rebuilt every view. Prints measured figures.
+Usage: python bench/bench_cars.py [--samples 60]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from blender_gen.recipe import Recipe
+from blender_gen.render import SampleRenderer
+
+ROOT = Path(__file__).resolve().parent.parent
+KENNEY = ROOT.parent / "shared" / "assets" / "cars3d"
+RULES = ROOT / "data_manifests" / "kenney_car_kit_rules.toml"
+
+
+def _forget(r: SampleRenderer) -> None:
+    """Delete every built car so the next sample builds its model again."""
+    for car in list(r._cars.values()):
+        meshes = {o.data for o in car.objects.values()}
+        for o in list(car.collection.objects):
+            bpy.data.objects.remove(o, do_unlink=True)
+        for m in meshes:
+            bpy.data.meshes.remove(m)
+        bpy.data.collections.remove(car.collection)
+    r._cars.clear()
+    r._visible = None
+
+
+def throughput(views_per_car: int, n: int, rebuild: bool, w: int, h: int) -> float:
+    r = SampleRenderer(Recipe(kind="intrinsics", seed=1, width=w, height=h, views_per_car=views_per_car), threads=0)
+    for spec in r.car_specs:  # every model built once, every sky made once
+        r._car(spec)
+    for name in r.env_names:
+        r._env_image(name)
+    r.render_layers(0)
+    t = time.perf_counter()
+    for i in range(1, n + 1):
+        if rebuild:
+            _forget(r)
+        r.render_layers(i)
+    dt = time.perf_counter() - t
+    r.close()
+    return n / dt
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--samples", type=int, default=60)
+    ap.add_argument("--resolution", default="512x256")
+    args = ap.parse_args()
+    w, h = (int(v) for v in args.resolution.split("x"))
+    r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, cars=("procedural",)), threads=0)
+    times = []
+    for spec in r.car_specs:
+        t = time.perf_counter()
+        r._car(spec)
+        times.append(time.perf_counter() - t)
+    print(f"procedural catalogue: {len(times)} models, build (NumPy geometry + Blender objects) "
+          f"mean {1000 * np.mean(times):.0f} ms, max {1000 * np.max(times):.0f} ms per model", flush=True)
+    r.close()
+    result = {"procedural_build_ms_mean": 1000 * float(np.mean(times)), "procedural_build_ms_max": 1000 * float(np.max(times))}
+    if KENNEY.is_dir():
+        files = tuple(str(p) for p in sorted(KENNEY.glob("*.glb")))
+        r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, cars=files, car_rules=str(RULES)), 0)
+        imp = []
+        for spec in r.car_specs:
+            t = time.perf_counter()
+            r._car(spec)
+            imp.append(time.perf_counter() - t)
+        r.close()
+        result["kenney_import_ms_mean"] = 1000 * float(np.mean(imp))
+        print(f"Kenney glTF models: {len(imp)} files, import + part rules + objects mean {1000 * np.mean(imp):.0f} ms, "
+              f"max {1000 * np.max(imp):.0f} ms per model", flush=True)
+    for label, vpc, rebuild in (("reused for 8 views", 8, False), ("reused for 4 views (default)", 4, False),
+                                ("switched every view (kept built)", 1, False), ("rebuilt every view", 1, True)):
+        sps = throughput(vpc, args.samples, rebuild, w, h)
+        result[label] = sps
+        print(f"intrinsics {w}x{h}, one process, model {label}: {sps:.2f} samples/s", flush=True)
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
