@@ -126,7 +126,7 @@ def test_manifest_rows_describe_each_sample(tiny_intrinsics):
         assert 0 <= r["envmap"]["rotation_deg"] < 360
         cam = r["camera"]
         assert len(cam["location"]) == 3 and cam["focal_length"] > 0 and cam["resolution"] == [64, 32]
-        assert np.hypot(*cam["location"][:2]) <= 8.0 and cam["location"][2] <= 3.0
+        assert np.hypot(*cam["location"][:2]) <= 8.05 and cam["location"][2] <= 3.0  # centre within cm of the origin
     info = json.loads((tiny_intrinsics / "dataset.json").read_text())
     assert info["kind"] == "intrinsics" and info["complete"] and info["count"] == 4
     assert info["resolution"] == [64, 32] and info["recipe"]["seed"] == 3

@@ -73,7 +73,8 @@ def test_camera_constraints_hold_over_many_draws():
     for _ in range(400):
         pose = sample_camera(rng, pts, 512, 256, ranges)
         loc = np.array(pose.location)
-        assert np.hypot(loc[0], loc[1]) <= ranges.radius_max + 1e-9
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))  # the car's centre (bounding box)
+        assert np.hypot(*(loc[:2] - centre[:2])) <= ranges.radius_max + 1e-9
         assert ranges.height_min <= loc[2] <= ranges.height_max
         assert ranges.focal_min <= pose.focal_length <= ranges.focal_max
         xy, depth = project(pts, pose, 512, 256)
