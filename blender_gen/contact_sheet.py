@@ -10,7 +10,8 @@ from PIL import Image, ImageDraw
 from .camera import CameraPose, look_at
 from .conversions import linear_to_srgb
 from .recipe import Recipe
-from .render import SampleRenderer, _quiet_stdout
+from .quiet import quiet_stdout
+from .render import SampleRenderer
 
 LIGHT = np.array([0.35, 0.55, 0.75])  # camera space, for a simple preview shading
 
@@ -44,7 +45,7 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
             loc = centre + np.array([math.cos(az), math.sin(az), 0.0]) * 1.55 * length + np.array([0, 0, 1.2])
             pose = CameraPose(tuple(loc), tuple(map(tuple, look_at(loc, centre))), tuple(centre), 35.0, 36.0)
             r._place({"car": car, "paint": r.table.paints[paint], "rotation": 0.0, "pose": pose})
-            with _quiet_stdout():
+            with quiet_stdout():
                 import bpy
 
                 bpy.ops.render.render(write_still=True)

@@ -9,10 +9,6 @@ scripts or drivers a file may carry.
 """
 from __future__ import annotations
 
-import contextlib
-import io
-import os
-import sys
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +17,8 @@ import bpy
 import numpy as np
 
 from .geometry import Mesh
-from .rules import SPLIT_PARTS, Rules, RulesError, base_name, face_part
+from .quiet import quiet_stdout
+from .rules import SPLIT_PARTS, Rules, RulesError, face_part
 
 SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
@@ -36,27 +33,11 @@ class ImportedModel:
     unmatched: int  # faces that fell to the default part
 
 
-@contextlib.contextmanager
-def _silenced():
-    """The glTF importer logs each node to stdout; keep a generator's output clean."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        with contextlib.redirect_stdout(io.StringIO()):
-            yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
 def _read_objects(path: Path) -> list[bpy.types.Object]:
     before = set(bpy.data.objects)
     suffix = path.suffix.lower()
     bpy.context.preferences.filepaths.use_scripts_auto_execute = False
-    with _silenced():
+    with quiet_stdout(python_too=True):  # the glTF importer logs every node
         if suffix in (".glb", ".gltf"):
             bpy.ops.import_scene.gltf(filepath=str(path))
         elif suffix == ".obj":
@@ -222,6 +203,3 @@ def _remove(objects: list[bpy.types.Object]) -> None:
     for coll in [c for c in bpy.data.collections if c.name.startswith("import_") and not c.objects]:
         bpy.data.collections.remove(coll)
 
-
-def base(name: str) -> str:
-    return base_name(name)

@@ -7,9 +7,7 @@ first use and kept, so a worker pays for each model once.
 """
 from __future__ import annotations
 
-import contextlib
 import os
-import sys
 import tempfile
 from pathlib import Path
 
@@ -21,27 +19,13 @@ from .cars import load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
 from .materials import load_materials
+from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
 from .rules import ImportedSpec, imported_specs, load_rules
 
 MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
-
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """Silence Blender's C-level 'Saved: ...' lines without touching Python's own streams."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
 
 
 def _scratch_dir() -> str:
@@ -153,7 +137,7 @@ class SampleRenderer:
         self._set_environment(self._env_image(d["env"]))
         self._place(d)
         self.scene.cycles.seed = d["seed"]
-        with _quiet_stdout():
+        with quiet_stdout():
             bpy.ops.render.render(write_still=True)
         return self._read_passes(), d
 

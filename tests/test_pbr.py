@@ -62,9 +62,9 @@ def test_rgb_is_finite_nonnegative_and_the_car_casts_a_shadow(pairs):
         r._visible = None
         with_car = rgb.mean(axis=-1)
         r.scene.cycles.seed = d["seed"]
-        from blender_gen.render import _quiet_stdout
+        from blender_gen.quiet import quiet_stdout
 
-        with _quiet_stdout():
+        with quiet_stdout():
             bpy.ops.render.render(write_still=True)
         empty = r._read_passes()["rgb"].mean(axis=-1)
     finally:

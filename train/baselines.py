@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import Config
-from .losses import gan_loss
+from .losses import discriminator_terms, gan_loss
 from .networks import MultiscaleDiscriminator, ResnetBlock, ResnetGenerator, norm_layer
 
 
@@ -99,8 +99,7 @@ class CycleGAN(nn.Module):
         total = 0.0
         for name, d, real, fake, pool in (("D_img", self.D_img, out["I_r"], out["fake_I"], self.pool_img),
                                           ("D_intr", self.D_intr, out["M_s"], out["fake_M"], self.pool_intr)):
-            logs[f"D/{name}_real"] = gan_loss(d(real), True, lc.gan)
-            logs[f"D/{name}_fake"] = gan_loss(d(pool.query(fake.detach())), False, lc.gan)
+            logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, pool.query(fake.detach()), lc.gan)
             total = total + 0.5 * (logs[f"D/{name}_real"] + logs[f"D/{name}_fake"])
         logs["D/total"] = total
         return total, {k: float(v.detach()) for k, v in logs.items()}
@@ -292,8 +291,7 @@ class MUNIT(nn.Module):
         logs = {}
         total = 0.0
         for name, d, real, fake in (("D_a", self.D_a, out["M_s"], out["fake_M"]), ("D_b", self.D_b, out["I_r"], out["fake_I"])):
-            logs[f"D/{name}_real"] = gan_loss(d(real), True, lc.gan)
-            logs[f"D/{name}_fake"] = gan_loss(d(fake.detach()), False, lc.gan)
+            logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, fake, lc.gan)
             total = total + logs[f"D/{name}_real"] + logs[f"D/{name}_fake"]
         logs["D/total"] = total
         return total, {k: float(v.detach()) for k, v in logs.items()}

@@ -35,3 +35,8 @@ def normal_length_loss(normals: torch.Tensor, threshold: float) -> torch.Tensor:
     length = normals.float().norm(dim=1)
     weight = (length > threshold).float()
     return ((1.0 - length).abs() * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def discriminator_terms(disc, real: torch.Tensor, fake: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """GAN losses of a discriminator on real data (target real) and on detached fakes."""
+    return gan_loss(disc(real), True, kind), gan_loss(disc(fake.detach()), False, kind)
