@@ -30,7 +30,7 @@ def _forget(r: SampleRenderer) -> None:
             bpy.data.meshes.remove(m)
         bpy.data.collections.remove(car.collection)
     r._cars.clear()
-    r._visible = None
+    r._visible = None  # the shown car is gone
 
 
 def throughput(views_per_car: int, n: int, rebuild: bool, w: int, h: int) -> float:

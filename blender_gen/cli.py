@@ -12,8 +12,8 @@ from .camera import CameraRanges
 from .dataset import DatasetError
 from .generate import GenerationError, generate, merge
 from .recipe import Recipe
+from .rules import MODEL_SUFFIXES
 
-MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 

@@ -10,7 +10,6 @@ from PIL import Image, ImageDraw
 from .camera import CameraPose, look_at
 from .conversions import linear_to_srgb
 from .recipe import Recipe
-from .quiet import quiet_stdout
 from .render import SampleRenderer
 
 LIGHT = np.array([0.35, 0.55, 0.75])  # camera space, for a simple preview shading
@@ -35,9 +34,7 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
     try:
         for spec in r.car_specs:
             car = r._car(spec)
-            for other in r._cars.values():
-                other.set_visible(other is car)
-            r._visible = car.name
+            r.show(car)
             lo, hi = car.points.min(axis=0), car.points.max(axis=0)
             centre = 0.5 * (lo + hi)
             length = hi[0] - lo[0]
@@ -45,11 +42,7 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
             loc = centre + np.array([math.cos(az), math.sin(az), 0.0]) * 1.55 * length + np.array([0, 0, 1.2])
             pose = CameraPose(tuple(loc), tuple(map(tuple, look_at(loc, centre))), tuple(centre), 35.0, 36.0)
             r._place({"car": car, "paint": r.table.paints[paint], "rotation": 0.0, "pose": pose})
-            with quiet_stdout():
-                import bpy
-
-                bpy.ops.render.render(write_still=True)
-            img = Image.fromarray(shaded(r._read_passes()))
+            img = Image.fromarray(shaded(r.render_current()))
             ImageDraw.Draw(img).text((6, 4), f"{spec.name} ({spec.category}, {spec.split})", fill=(20, 20, 20))
             tiles.append(img)
     finally:

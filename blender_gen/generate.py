@@ -14,12 +14,11 @@ import platform
 import shutil
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 from tqdm import tqdm
 
-from .dataset import (FORMAT_VERSION, DatasetError, append_manifest, atomic_write_json, read_info,
+from .dataset import (FORMAT_VERSION, KIND_LAYERS, DatasetError, append_manifest, atomic_write_json, read_info,
                       read_manifest, verify_rows, write_manifest)
 from .recipe import Recipe, identity_diff
 
@@ -91,16 +90,10 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
         "complete": False,
         "software": software_versions(),
         "recipe": identity,
-        "layers": list(_layers(recipe.kind)),
+        "layers": list(KIND_LAYERS[recipe.kind]),
     }
     atomic_write_json(out / "dataset.json", info)
     return info, good
-
-
-def _layers(kind: str):
-    from .dataset import KIND_LAYERS
-
-    return KIND_LAYERS[kind]
 
 
 # ------------------------------------------------------------------- worker processes
@@ -139,9 +132,7 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
     started = time.perf_counter()
     rendered = 0
     try:
-        if not todo:
-            pass
-        elif workers == 1:
+        if todo and workers == 1:
             from .render import make_renderer
 
             renderer = make_renderer(recipe, threads)
@@ -152,7 +143,7 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
                     bar.update()
             finally:
                 renderer.close()
-        else:
+        elif todo:
             # spawn: a fresh interpreter per worker (bpy must not be forked); the executor
             # fails fast if a worker cannot start, and map() yields results in sample order.
             with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
@@ -216,6 +207,3 @@ def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
     info["_missing"] = missing
     return info
 
-
-def recipe_summary(recipe: Recipe) -> dict:
-    return asdict(recipe)

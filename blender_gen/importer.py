@@ -18,9 +18,7 @@ import numpy as np
 
 from .geometry import Mesh
 from .quiet import quiet_stdout
-from .rules import SPLIT_PARTS, Rules, RulesError, face_part
-
-SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
+from .rules import MODEL_SUFFIXES, SPLIT_PARTS, Rules, RulesError, face_part
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 
 
@@ -52,7 +50,7 @@ def _read_objects(path: Path) -> list[bpy.types.Object]:
                 if obj is not None:
                     coll.objects.link(obj)
         else:
-            raise RulesError(f"{path}: unsupported model format; expected one of {SUFFIXES}")
+            raise RulesError(f"{path}: unsupported model format; expected one of {MODEL_SUFFIXES}")
     return [o for o in bpy.data.objects if o not in before]
 
 

@@ -21,9 +21,7 @@ from .envmap import PROCEDURAL_PREFIX, procedural_sky
 from .materials import load_materials
 from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
-from .rules import ImportedSpec, imported_specs, load_rules
-
-MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
+from .rules import MODEL_SUFFIXES, ImportedSpec, imported_specs, load_rules
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
 
@@ -44,6 +42,7 @@ class SampleRenderer:
         self._env_images: dict[str, bpy.types.Image] = {}
         self.shader, self.env_node = S.car_material(self._env_image(self.env_names[0]), physical=self.physical)
         self._setup_lighting()
+        self._part_materials, self._tinted = load_part_materials()
         self.car_specs = self._resolve_cars()
         self._cars: dict[str, S.CarInstance] = {}
         self._visible: str | None = None
@@ -99,9 +98,9 @@ class SampleRenderer:
         if car is None:
             from .cars import build_car
 
-            part_mat, tinted = load_part_materials()
+            part_mat = self._part_materials
             if spec.tinted_rear:
-                part_mat = {**part_mat, "window_side": tinted}
+                part_mat = {**part_mat, "window_side": self._tinted}
             if isinstance(spec, ImportedSpec):
                 from .importer import import_model
 
@@ -127,19 +126,26 @@ class SampleRenderer:
         pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 
-    def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
-        d = self.draw(index)
-        car = d["car"]
-        if self._visible != car.name:
+    def show(self, car: S.CarInstance | None) -> None:
+        """Make `car` the only visible car (None hides all)."""
+        if self._visible != (car.name if car else None):
             for other in self._cars.values():
                 other.set_visible(other is car)
-            self._visible = car.name
+            self._visible = car.name if car else None
+
+    def render_current(self) -> dict[str, np.ndarray]:
+        """Render the scene as it is set up now and return its layers."""
+        with quiet_stdout():
+            bpy.ops.render.render(write_still=True)
+        return self._read_passes()
+
+    def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
+        d = self.draw(index)
+        self.show(d["car"])
         self._set_environment(self._env_image(d["env"]))
         self._place(d)
         self.scene.cycles.seed = d["seed"]
-        with quiet_stdout():
-            bpy.ops.render.render(write_still=True)
-        return self._read_passes(), d
+        return self.render_current(), d
 
     def _read_passes(self) -> dict[str, np.ndarray]:
         ch = read_exr_channels(self._scratch)

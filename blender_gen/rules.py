@@ -37,6 +37,7 @@ from pathlib import Path
 
 from .cars import CATEGORIES, PARTS
 
+MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 SPLIT_PARTS = {"windows": ("windshield", "window_side", "window_rear"), "bumpers": ("bumper_front", "bumper_rear")}
 _MODEL_KEYS = {"forward", "up", "length", "default_part", "category"}

@@ -179,6 +179,10 @@ def _html(entries, data: Path, real: Path, grid: int) -> str:
 
     # decomposition grid: image and ground truth, then each run's prediction
     gt_ds = open_dataset(data, kinds=("pbr",))
+    preds = []
+    for e in entries:
+        ds = open_dataset(e["pred_dir"])
+        preds.append((e, ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
     dec_rows = []
     for j in range(min(grid, len(gt_ds))):
         gt = gt_ds.load(j)
@@ -187,9 +191,7 @@ def _html(entries, data: Path, real: Path, grid: int) -> str:
         cells += [f"<td>{_img(_data_uri(_png_bytes(preview_srgb8(k, gt[k]))), 'ground truth ' + k)}</td>" for k in INTRINSIC_LAYERS]
         dec_rows.append("<tr>" + "".join(cells) + "</tr>")
         index = gt_ds.rows[j]["index"]
-        for e in entries:
-            pred_ds = open_dataset(e["pred_dir"])
-            pos = {r["index"]: k for k, r in enumerate(pred_ds.rows)}
+        for e, pred_ds, pos in preds:
             if index not in pos:
                 continue
             pred = pred_ds.load(pos[index])

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import Config
-from .losses import discriminator_terms, gan_loss
+from .losses import discriminator_terms, finish_logs, gan_loss
 from .networks import MultiscaleDiscriminator, ResnetBlock, ResnetGenerator, norm_layer
 
 
@@ -90,8 +90,7 @@ class CycleGAN(nn.Module):
         }
         total = lc.w_adv * (logs["G/adv_img"] + logs["G/adv_intr"]) + lc.w_ren * logs["G/cycle_intr"] \
             + lc.w_dec * logs["G/cycle_img"]
-        logs["G/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "G")
 
     def discriminator_loss(self, out):
         lc = self.loss_cfg
@@ -101,8 +100,7 @@ class CycleGAN(nn.Module):
                                           ("D_intr", self.D_intr, out["M_s"], out["fake_M"], self.pool_intr)):
             logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, pool.query(fake.detach()), lc.gan)
             total = total + 0.5 * (logs[f"D/{name}_real"] + logs[f"D/{name}_fake"])
-        logs["D/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "D")
 
     def visuals(self, out):
         return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I")}
@@ -283,8 +281,7 @@ class MUNIT(nn.Module):
             cyc_b = self.gen_b.decoder(out["c_b_recon"], self.gen_b.style(out["I_r"]))
             logs["G/cycle"] = F.l1_loss(cyc_a, out["M_s"]) + F.l1_loss(cyc_b, out["I_r"])
             total = total + lc.munit_w_cyc * logs["G/cycle"]
-        logs["G/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "G")
 
     def discriminator_loss(self, out):
         lc = self.loss_cfg
@@ -293,8 +290,7 @@ class MUNIT(nn.Module):
         for name, d, real, fake in (("D_a", self.D_a, out["M_s"], out["fake_M"]), ("D_b", self.D_b, out["I_r"], out["fake_I"])):
             logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, fake, lc.gan)
             total = total + logs[f"D/{name}_real"] + logs[f"D/{name}_fake"]
-        logs["D/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "D")
 
     def visuals(self, out):
         return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I")}

@@ -16,6 +16,7 @@ from blender_gen.dataset import (INTRINSIC_LAYERS, append_manifest, atomic_write
 from .checkpoint import CheckpointError, latest_checkpoint, load_weights
 from .config import Config, config_from_dict
 from .data import IntrinsicsData, RealImages
+from .loop import _save_png, to_display
 from .model import build_model
 
 
@@ -36,10 +37,8 @@ def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None)
 
 
 def _srgb_png(path: Path, t: torch.Tensor) -> None:
-    img = ((t.float().clamp(-1, 1) + 1) * 127.5 + 0.5).permute(1, 2, 0).cpu().numpy().astype(np.uint8)
-    tmp = path.with_name(f".{path.name}.tmp")
-    Image.fromarray(img).save(tmp, format="PNG")
-    tmp.replace(path)
+    """R's output is sRGB-encoded network space: write it as it is."""
+    _save_png(path, to_display(t))
 
 
 @torch.no_grad()

@@ -104,7 +104,7 @@ def _lr_lambda(decay_start: int, max_steps: int):
     return f
 
 
-def to_display(name: str, t: torch.Tensor) -> np.ndarray:
+def to_display(t: torch.Tensor) -> np.ndarray:
     """(3, H, W) network-space tensor -> uint8 HxWx3 (normals and sRGB both map [-1, 1] -> [0, 1])."""
     x = ((t.detach().float().clamp(-1, 1) + 1.0) * 0.5).permute(1, 2, 0).cpu().numpy()
     return (x * 255.0 + 0.5).astype(np.uint8)
@@ -120,12 +120,12 @@ def sample_grid(vis: dict[str, torch.Tensor]) -> np.ndarray:
     blank = None
     for i in range(vis["M_s"].shape[0]):
         m, fm = vis["M_s"][i], vis["fake_M"][i]
-        blank = np.zeros_like(to_display("x", m[:3]))
+        blank = np.zeros_like(to_display(m[:3]))
         rec_m = vis.get("rec_M")
         ren = [m[0:3], m[3:6], m[6:9], vis["fake_I"][i]] + ([rec_m[i][k:k + 3] for k in (0, 3, 6)] if rec_m is not None else [])
         dec = [vis["I_r"][i], fm[0:3], fm[3:6], fm[6:9]] + ([vis["rec_I"][i]] if "rec_I" in vis else [])
-        r1 = [to_display("", t) for t in ren]
-        r2 = [to_display("", t) for t in dec]
+        r1 = [to_display(t) for t in ren]
+        r2 = [to_display(t) for t in dec]
         width = max(len(r1), len(r2))
         r1 += [blank] * (width - len(r1))
         r2 += [blank] * (width - len(r2))

@@ -37,6 +37,12 @@ def normal_length_loss(normals: torch.Tensor, threshold: float) -> torch.Tensor:
     return ((1.0 - length).abs() * weight).sum() / weight.sum().clamp_min(1.0)
 
 
+def finish_logs(total: torch.Tensor, logs: dict[str, torch.Tensor], prefix: str) -> tuple[torch.Tensor, dict[str, float]]:
+    """Add `<prefix>/total` and return the loss with its logs as plain floats."""
+    logs[f"{prefix}/total"] = total
+    return total, {k: float(v.detach()) for k, v in logs.items()}
+
+
 def discriminator_terms(disc, real: torch.Tensor, fake: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     """GAN losses of a discriminator on real data (target real) and on detached fakes."""
     return gan_loss(disc(real), True, kind), gan_loss(disc(fake.detach()), False, kind)

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import cycle_loss, gan_loss, normal_length_loss
+from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss
 from .networks import Decomposer, MultiscaleDiscriminator, make_renderer_net
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
@@ -90,8 +90,7 @@ class IntrinsicAutoencoder(nn.Module):
                 adv = gan_loss([c[k] for c in chunks], True, lc.gan)
                 logs[f"G/adv_{dname}_{f}"] = adv
                 total = total + lc.w_adv * adv
-        logs["G/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "G")
 
     def discriminator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         """Real vs the (detached) fakes; halved as in pix2pixHD so D learns at half G's pace."""
@@ -105,8 +104,7 @@ class IntrinsicAutoencoder(nn.Module):
             loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan) for k in range(len(fakes))) / len(fakes)
             logs[f"D/{dname}_real"], logs[f"D/{dname}_fake"] = loss_real, loss_fake
             total = total + 0.5 * (loss_real + loss_fake)
-        logs["D/total"] = total
-        return total, {k: float(v.detach()) for k, v in logs.items()}
+        return finish_logs(total, logs, "D")
 
     def visuals(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I") if k in out}
