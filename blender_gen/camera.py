@@ -11,6 +11,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 
+
+class CameraError(ValueError):
+    """The camera ranges admit no view that keeps the car in frame."""
+
 @dataclass(frozen=True)
 class CameraRanges:
     """Where cameras may go. Defaults: the paper's 8 m radius and 3 m height."""
@@ -129,7 +133,7 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, width: int, heig
         )
         if view_ok(points, pose, width, height, ranges):
             return pose
-    raise RuntimeError(
+    raise CameraError(
         f"no valid camera in {ranges.max_tries} draws: the car never fits the frame with radius "
         f"{ranges.radius_min}..{ranges.radius_max} m and focal {ranges.focal_min}..{ranges.focal_max} mm; "
         "widen the ranges or lower --min-coverage"

@@ -9,8 +9,10 @@ from pathlib import Path
 import click
 
 from .camera import CameraRanges
-from .dataset import DatasetError
-from .generate import GenerationError, generate, merge
+from .cli_errors import one_line_errors
+from .dataset import MAX_INDEX
+from .envmap import PROCEDURAL_SETS
+from .generate import generate, merge
 from .recipe import Recipe
 from .rules import MODEL_SUFFIXES
 
@@ -33,6 +35,8 @@ def parse_resolution(text: str) -> tuple[int, int]:
 
 def check_envmap(path: str) -> str:
     """Early, Blender-free check that an environment map is a readable .hdr/.exr file."""
+    if path in PROCEDURAL_SETS:
+        return "procedural" if path == "procedural:train" else path  # one spelling, one recipe identity
     p = Path(path)
     if not p.is_file():
         _fail(f"--envmap {path}: no such file")
@@ -81,7 +85,8 @@ def _common_options(fn):
     opts = [
         click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
                      help="Dataset folder (created; re-running resumes it)."),
-        click.option("--count", required=True, type=int, help="Number of samples in the dataset."),
+        click.option("--count", required=True, type=click.IntRange(1, MAX_INDEX + 1),
+                     help="Number of samples in the dataset."),
         click.option("--seed", default=0, show_default=True, type=int, help="Recipe seed: same seed, same dataset."),
         click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels."),
         click.option("--cars", "cars", multiple=True,
@@ -90,9 +95,12 @@ def _common_options(fn):
         click.option("--car-rules", type=click.Path(dir_okay=False), default=None,
                      help="TOML rules mapping a model file's objects/materials/palette regions to parts."),
         click.option("--envmap", "envmaps", multiple=True,
-                     help="Equirectangular .hdr/.exr (repeatable); default: the built-in procedural skies."),
-        click.option("--samples", default=None, type=int, help="Cycles samples per pixel."),
-        click.option("--workers", default=1, show_default=True, type=int, help="Blender processes rendering in parallel."),
+                     help="Equirectangular .hdr/.exr (repeatable), or the built-in skies: procedural (= "
+                          "procedural:train, 8 skies) or procedural:heldout (4 others). Default: intrinsics "
+                          "procedural, pbr procedural:heldout (the stand-in for real photos)."),
+        click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel."),
+        click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
+                     help="Blender processes rendering in parallel."),
         click.option("--shard", default=None, help="I/N: render only samples with index %% N == I (batch schedulers)."),
         click.option("--radius-min", default=CameraRanges.radius_min, show_default=True, type=float,
                      help="Minimum horizontal camera distance from the car centre (m)."),
@@ -105,7 +113,7 @@ def _common_options(fn):
                      show_default=True, help="Focal length range in mm (36 mm sensor)."),
         click.option("--min-coverage", default=CameraRanges.min_coverage, show_default=True, type=float,
                      help="Minimum fraction of the frame the car's bounding box must cover."),
-        click.option("--views-per-car", default=4, show_default=True, type=int,
+        click.option("--views-per-car", default=4, show_default=True, type=click.IntRange(1, MAX_INDEX + 1),
                      help="Consecutive samples that share a (randomly drawn) car model; 1 = a new draw per sample."),
         click.option("--quiet", is_flag=True, help="No progress bar."),
     ]
@@ -114,16 +122,9 @@ def _common_options(fn):
     return fn
 
 
-def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -> Recipe:
-    if o["count"] < 1:
-        _fail(f"--count {o['count']}: expected at least 1")
-    if o["workers"] < 1:
-        _fail(f"--workers {o['workers']}: expected at least 1")
-    if o["views_per_car"] < 1:
-        _fail(f"--views-per-car {o['views_per_car']}: expected at least 1")
+def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
+                  default_env: str = "procedural") -> Recipe:
     samples = default_samples if o["samples"] is None else o["samples"]
-    if samples < 1:
-        _fail(f"--samples {samples}: expected at least 1")
     w, h = parse_resolution(o["resolution"])
     m = re.fullmatch(r"\s*([\d.]+)\s*-\s*([\d.]+)\s*", o["focal_range"])
     if not m:
@@ -146,21 +147,21 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict) -
             load_rules(rules)
         except RulesError as exc:
             _fail(str(exc))
-    envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or ("procedural",)
+    envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or (default_env,)
     return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
                   car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
                   camera=ranges, views_per_car=o["views_per_car"])
 
 
 def _run(recipe: Recipe, o: dict) -> None:
-    try:
+    with one_line_errors():
         info = generate(recipe, o["out"], o["count"], workers=o["workers"], shard=o["shard"], progress=not o["quiet"])
-    except (GenerationError, DatasetError, ValueError, RuntimeError) as exc:
-        _fail(str(exc).splitlines()[0] if str(exc) else repr(exc))
     n, secs = info["_rendered"], info["_seconds"]
     rate = f", {n / secs:.2f} samples/s" if n and secs > 0 else ""
-    click.echo(f"{o['out']}: {info['count']} samples ({n} rendered now in {secs:.1f} s{rate})"
-               + ("" if info["complete"] else "; INCOMPLETE"))
+    click.echo(f"{o['out']}: {info['count']} samples ({n} rendered now in {secs:.1f} s{rate})")
+    if not info["complete"]:
+        _fail(f"{o['out']}: INCOMPLETE ({info['count']} samples finished); run the same command "
+              "again to finish it")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -178,27 +179,28 @@ def intrinsics(**o) -> None:
 @main.command()
 @_common_options
 def pbr(**o) -> None:
-    """Render Cycles path-traced images with their ground-truth intrinsics."""
-    _run(_build_recipe("pbr", "procedural:heldout", 8, o), o)
+    """Render Cycles path-traced images with their ground-truth intrinsics.
+
+    The defaults make the stand-in for real photos: held-out cars under held-out skies. The
+    Table-3 evaluation set is `--cars procedural:train --envmap procedural` with a new --seed.
+    """
+    _run(_build_recipe("pbr", "procedural:heldout", 8, o, default_env="procedural:heldout"), o)
 
 
 @main.command("cars")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--cars", "cars", multiple=True, help="Selectors or model files (default: the whole catalogue).")
 @click.option("--car-rules", type=click.Path(dir_okay=False), default=None)
-@click.option("--columns", default=4, show_default=True, type=int)
+@click.option("--columns", default=4, show_default=True, type=click.IntRange(1, 64))
 def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: int) -> None:
     """A contact sheet (one PNG) of car models in a fixed view, to judge them at a glance."""
     from .contact_sheet import contact_sheet
-    from .rules import RulesError
 
     if car_rules is not None and not Path(car_rules).is_file():
         _fail(f"--car-rules {car_rules}: no such file")
     chosen = check_cars(cars or ("procedural",), car_rules)
-    try:
+    with one_line_errors():
         path = contact_sheet(out, chosen, str(Path(car_rules).resolve()) if car_rules else None, columns=columns)
-    except (RulesError, ValueError) as exc:
-        _fail(str(exc))
     click.echo(str(path))
 
 
@@ -206,8 +208,8 @@ def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: i
 @click.argument("root", type=click.Path(path_type=Path))
 @click.option("--grid", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Preview grid PNG (default: ROOT/previews/inspect_grid.png).")
-@click.option("--grid-samples", default=6, show_default=True, type=int)
-@click.option("--max-stats", default=None, type=int, help="Gather value ranges over the first N samples only.")
+@click.option("--grid-samples", default=6, show_default=True, type=click.IntRange(1, 64))
+@click.option("--max-stats", default=None, type=click.IntRange(0), help="Gather value ranges over the first N samples only.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True)
 def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int | None, as_json: bool,
@@ -215,13 +217,11 @@ def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int
     """Summarise a dataset, verify every checksum, write a preview grid; exit 1 if anything is wrong."""
     from .inspect import format_summary, inspect_dataset, preview_grid
 
-    try:
+    with one_line_errors():
         summary = inspect_dataset(root, max_stats=max_stats, progress=not quiet)
         if summary["samples"] > len(summary["bad_files"]):
             summary["grid"] = str(preview_grid(root, grid or Path(root) / "previews" / "inspect_grid.png",
                                                grid_samples, frozenset(summary["bad_files"])))
-    except DatasetError as exc:
-        _fail(str(exc))
     click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
     if summary.get("grid") and not as_json:
         click.echo(f"preview   {summary['grid']}")
@@ -235,14 +235,12 @@ def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int
 @click.option("--quiet", is_flag=True)
 def merge_cmd(out: Path, shards: tuple[Path, ...], quiet: bool) -> None:
     """Join shard folders (from --shard I/N runs of one recipe) into one dataset."""
-    try:
+    with one_line_errors():
         info = merge(out, list(shards), progress=not quiet)
-    except (GenerationError, DatasetError) as exc:
-        _fail(str(exc))
     msg = f"{out}: {info['count']} samples merged from {len(shards)} shard(s)"
-    if info["_missing"]:
-        msg += f"; {len(info['_missing'])} missing, e.g. {info['_missing'][:10]}"
     click.echo(msg)
+    if info["_missing"]:
+        _fail(f"{out}: INCOMPLETE, {len(info['_missing'])} sample(s) missing, e.g. {info['_missing'][:10]}")
 
 
 if __name__ == "__main__":

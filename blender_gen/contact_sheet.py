@@ -9,6 +9,7 @@ from PIL import Image, ImageDraw
 
 from .camera import CameraPose, look_at
 from .conversions import linear_to_srgb
+from .dataset import save_png
 from .recipe import Recipe
 from .render import SampleRenderer
 
@@ -54,7 +55,5 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "contact_sheet.png"
-    tmp = out / ".contact_sheet.png.tmp"
-    sheet.save(tmp, format="PNG")
-    tmp.replace(path)
+    save_png(path, sheet)
     return path

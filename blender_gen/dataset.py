@@ -10,9 +10,14 @@ DATASET/
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
+import re
+import socket
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -41,17 +46,54 @@ class DatasetError(ValueError):
     """A dataset on disk is missing, malformed or of the wrong kind."""
 
 
+class DatasetWriteError(DatasetError):
+    """Writing failed (disk full, read-only folder, ...); nothing half-written was left."""
+
+
 # --------------------------------------------------------------------------- files
+
+def temp_name(path: Path) -> Path:
+    """The hidden temporary a file is written under before it is renamed into place."""
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+def _write_failed(path: Path, tmp: Path, exc: BaseException) -> DatasetWriteError:
+    """Remove the temporary and describe the failure in one line that names the file."""
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
+    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).splitlines()[0] if str(exc) else repr(exc)
+    return DatasetWriteError(f"cannot write {path}: {why}")
+
+
+@contextmanager
+def atomic_target(path: Path):
+    """Yield a temporary path to write; on success it is fsynced and renamed over `path`.
+
+    On any failure the temporary is removed and a one-line DatasetWriteError names `path`.
+    """
+    path = Path(path)
+    tmp = temp_name(path)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except DatasetWriteError:
+        tmp.unlink(missing_ok=True)
+        raise
+    except Exception as exc:  # OSError, or a library's own error type for a failed write
+        raise _write_failed(path, tmp, exc) from exc
+    except BaseException:  # Ctrl-C, SystemExit: still leave nothing behind
+        tmp.unlink(missing_ok=True)
+        raise
+
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write to a hidden temporary name in the same folder, fsync, then rename over `path`."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
+    with atomic_target(path) as tmp, open(tmp, "wb") as fh:
         fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def atomic_write_json(path: Path, obj: object) -> None:
@@ -84,12 +126,17 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], half: bool = True) -> N
         for i, ch in enumerate(names):
             channels[f"{name}.{ch}"] = np.ascontiguousarray(arr[..., i].astype(dtype))
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with OpenEXR.File(header, channels) as f:
+    with atomic_target(path) as tmp, OpenEXR.File(header, channels) as f:
         f.write(str(tmp))
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+
+
+def save_png(path: Path, image) -> None:
+    """A PIL image or HxW(x3) uint8 array as a PNG, written atomically."""
+    from PIL import Image
+
+    img = image if isinstance(image, Image.Image) else Image.fromarray(np.asarray(image))
+    with atomic_target(Path(path)) as tmp:
+        img.save(tmp, format="PNG")
 
 
 def read_exr_channels(path: Path) -> dict[str, np.ndarray]:
@@ -123,35 +170,73 @@ def read_exr(path: Path, layers: Iterable[str] | None = None) -> dict[str, np.nd
 
 # --------------------------------------------------------------------------- manifest
 
+MAX_INDEX = 999_999  # six-digit sample file names; --count is capped at MAX_INDEX + 1 (the paper used 20,000)
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
 def sample_filename(index: int) -> str:
     return f"samples/{index:06d}.exr"
 
 
+def check_row(row: object, where: str) -> dict:
+    """A manifest row must name exactly its own sample file and carry its checksum.
+
+    This is what keeps a manifest from pointing readers (or `merge`) at any other path:
+    `file` is never joined to a folder unless it equals `sample_filename(index)`.
+    """
+    if not isinstance(row, dict):
+        raise DatasetError(f"{where}: expected a JSON object, got {type(row).__name__}; the dataset is corrupt")
+    index = row.get("index")
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index <= MAX_INDEX:
+        raise DatasetError(f"{where}: 'index' must be an integer in [0, {MAX_INDEX}], got {index!r}; the dataset is corrupt")
+    if row.get("file") != sample_filename(index):
+        raise DatasetError(f"{where}: 'file' must be {sample_filename(index)!r} for sample {index}, got "
+                           f"{row.get('file')!r}; the dataset is corrupt")
+    sha = row.get("sha256")
+    if not isinstance(sha, str) or not _SHA256.fullmatch(sha):
+        raise DatasetError(f"{where}: 'sha256' must be 64 lowercase hex digits, got {sha!r}; the dataset is corrupt")
+    return row
+
+
 def read_manifest(path: Path) -> list[dict]:
-    """Rows of a manifest; a torn last line (a killed writer) is dropped, others are errors."""
+    """Validated rows of a manifest, one per sample index (the last row of an index wins).
+
+    A torn last line (a killed writer) is dropped; any other unreadable or invalid row
+    makes the dataset corrupt (DatasetError naming the line).
+    """
     path = Path(path)
     if not path.exists():
         return []
-    lines = path.read_text().splitlines()
-    rows = []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); the dataset is corrupt") from None
+    by_index: dict[int, dict] = {}
     for i, line in enumerate(lines):
         if not line.strip():
             continue
         try:
-            rows.append(json.loads(line))
+            row = json.loads(line)
         except json.JSONDecodeError as exc:
             if i == len(lines) - 1:
                 break  # interrupted append: that sample is simply not finished
             raise DatasetError(f"{path}: line {i + 1} is not valid JSON ({exc})") from exc
-    return rows
+        row = check_row(row, f"{path}: line {i + 1}")
+        by_index.pop(row["index"], None)  # keep first-seen order of the survivors
+        by_index[row["index"]] = row
+    return list(by_index.values())
 
 
 def append_manifest(path: Path, row: dict) -> None:
     """Append one row and fsync: a row exists only for a sample whose file is whole."""
-    with open(path, "a") as fh:
-        fh.write(json.dumps(row, sort_keys=True) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
+    check_row(row, f"{path}: new row")
+    try:
+        with open(path, "a") as fh:
+            fh.write(json.dumps(row, sort_keys=True) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+    except OSError as exc:
+        raise DatasetWriteError(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
 def write_manifest(path: Path, rows: list[dict]) -> None:
@@ -193,11 +278,14 @@ class Dataset:
 def read_info(root: Path) -> dict:
     path = Path(root) / "dataset.json"
     try:
-        return json.loads(path.read_text())
+        info = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DatasetError(f"{root}: not a dataset (no dataset.json)") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(info, dict):
+        raise DatasetError(f"{path}: expected a JSON object")
+    return info
 
 
 def open_dataset(root: Path, kinds: Iterable[str] | None = None) -> Dataset:
@@ -215,11 +303,52 @@ def open_dataset(root: Path, kinds: Iterable[str] | None = None) -> Dataset:
     return Dataset(root, info, rows)
 
 
+# --------------------------------------------------------------------------- writers
+
+LOCK_NAME = ".lock"
+
+
+def folder_is_empty(root: Path) -> bool:
+    """True for a folder with nothing in it but (possibly) a writer's lock file."""
+    return all(p.name == LOCK_NAME for p in Path(root).iterdir())
+
+
+@contextmanager
+def locked_folder(root: Path, option: str = "--out"):
+    """Hold an exclusive lock on a dataset folder while writing it.
+
+    A second writer fails at once with a message naming the process that holds the lock.
+    The lock is an advisory `flock` on `ROOT/.lock`: the kernel releases it when the holder
+    exits however it dies, so a killed run never leaves the folder locked.
+    """
+    import fcntl
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    path = root / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise
+            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+            raise DatasetError(f"{option} {root} is being written by {holder}; wait for it to finish or choose "
+                               "another folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since "
+                      f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)
+        yield root
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
 def verify_rows(root: Path, rows: list[dict]) -> tuple[list[dict], list[tuple[dict, str]]]:
     """Split rows into those whose file exists with the recorded sha256 and the others."""
     good, bad = [], []
     for row in rows:
-        path = Path(root) / row["file"]
+        path = Path(root) / check_row(row, f"{root}: sample {row.get('index')!r}")["file"]
         if not path.exists():
             bad.append((row, "missing file"))
         elif sha256_file(path) != row["sha256"]:

@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 PROCEDURAL_PREFIX = "procedural:"
-DEFAULT_SKY_VARIANTS = 8
+DEFAULT_SKY_VARIANTS = 8  # "procedural" (= "procedural:train"): variants 0..7, the training skies
+HELDOUT_SKY_VARIANTS = 4  # "procedural:heldout": variants 8..11, skies no training intrinsics reflect
+PROCEDURAL_SETS = ("procedural", "procedural:train", "procedural:heldout")
 
 
 def direction_to_uv(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

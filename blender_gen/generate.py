@@ -18,8 +18,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .dataset import (FORMAT_VERSION, KIND_LAYERS, DatasetError, append_manifest, atomic_write_json, read_info,
-                      read_manifest, verify_rows, write_manifest)
+from .dataset import (FORMAT_VERSION, KIND_LAYERS, MAX_INDEX, DatasetError, append_manifest, atomic_target,
+                      atomic_write_json, folder_is_empty, locked_folder, read_info, read_manifest, verify_rows,
+                      write_manifest)
 from .recipe import Recipe, identity_diff
 
 
@@ -68,10 +69,10 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
                                   "choose another --out or repeat the original options")
         if tuple(info.get("shard", [0, 1])) != shard:
             raise GenerationError(f"--out {out} holds shard {info.get('shard')}, not {list(shard)}")
-    elif out.exists() and any(out.iterdir()):
+    elif out.exists() and not folder_is_empty(out):
         raise GenerationError(f"--out {out}: folder is not empty and holds no dataset.json; refusing to mix files")
     (out / "samples").mkdir(parents=True, exist_ok=True)
-    for stale in (out / "samples").glob(".*.tmp*"):  # left by a killed writer
+    for stale in [*(out / "samples").glob(".*.tmp*"), *out.glob(".*.tmp*")]:  # left by a killed writer
         stale.unlink()
     rows = read_manifest(out / "manifest.jsonl")
     good, bad = verify_rows(out, rows)
@@ -100,8 +101,34 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
 _worker = None
 
 
-def _init_worker(recipe: Recipe, threads: int) -> None:
+def die_with_parent(parent: int) -> None:
+    """End this process as soon as `parent` is gone (a killed `iae-gen` leaves no workers).
+
+    Linux delivers SIGKILL through PR_SET_PDEATHSIG; a watchdog thread covers other systems
+    and the race where the parent died before the request was made.
+    """
+    import ctypes
+    import signal
+    import threading
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    if os.getppid() != parent:
+        os._exit(1)
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+def _init_worker(recipe: Recipe, threads: int, parent: int) -> None:
     global _worker
+    die_with_parent(parent)
     from .render import make_renderer
 
     _worker = make_renderer(recipe, threads)
@@ -114,13 +141,29 @@ def _render_one(args: tuple[int, str]) -> dict:
 
 def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str | None = None,
              progress: bool = True) -> dict:
-    """Render samples [0, count) of this shard that are not finished yet; returns dataset.json."""
-    if count < 1:
-        raise GenerationError(f"--count {count}: expected at least 1")
+    """Render samples [0, count) of this shard that are not finished yet; returns dataset.json.
+
+    The folder is locked for the whole run, so a second generator on it fails at once.
+    """
+    if not 1 <= count <= MAX_INDEX + 1:
+        raise GenerationError(f"--count {count}: expected 1 to {MAX_INDEX + 1}")
     if workers < 1:
         raise GenerationError(f"--workers {workers}: expected at least 1")
     shard_t = parse_shard(shard)
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise GenerationError(f"--out {out}: exists and is not a directory")
+    if out.exists() and not (out / "dataset.json").exists() and not folder_is_empty(out):
+        raise GenerationError(f"--out {out}: folder is not empty and holds no dataset.json; refusing to mix files")
+    try:
+        with locked_folder(out):
+            return _generate_locked(recipe, out, count, workers, shard_t, progress)
+    except OSError as exc:  # e.g. the folder cannot be created at all
+        raise DatasetError(f"--out {out}: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")) from None
+
+
+def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_t: tuple[int, int],
+                     progress: bool) -> dict:
     info, done_rows = prepare_output(out, recipe, count, shard_t)
     done = {r["index"] for r in done_rows}
     todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]
@@ -131,6 +174,13 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
     manifest = out / "manifest.jsonl"
     started = time.perf_counter()
     rendered = 0
+
+    def finish() -> None:
+        rows = read_manifest(manifest)
+        info["count"] = len(rows)
+        info["complete"] = len(rows) == total
+        atomic_write_json(out / "dataset.json", info)
+
     try:
         if todo and workers == 1:
             from .render import make_renderer
@@ -146,37 +196,63 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
         elif todo:
             # spawn: a fresh interpreter per worker (bpy must not be forked); the executor
             # fails fast if a worker cannot start, and map() yields results in sample order.
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                     initargs=(recipe, threads)) as pool:
+            pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                       initargs=(recipe, threads, os.getpid()))
+            try:
                 jobs = [(i, str(out)) for i in todo]
                 for row in pool.map(_render_one, jobs, chunksize=recipe.views_per_car):
                     append_manifest(manifest, row)
                     rendered += 1
                     bar.update()
-    finally:
+            except BaseException:
+                _stop_pool(pool)  # queued work must not keep running after a failure or Ctrl-C
+                raise
+            pool.shutdown()
+    except BaseException:
         bar.close()
-        rows = read_manifest(manifest)
-        info["count"] = len(rows)
-        info["complete"] = len(rows) == total
-        atomic_write_json(out / "dataset.json", info)
+        try:  # record what is finished, but never let a second error hide the first
+            finish()
+        except Exception:
+            pass
+        raise
+    bar.close()
+    finish()
     elapsed = time.perf_counter() - started
     info["_rendered"], info["_seconds"] = rendered, elapsed
     return info
 
 
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel queued work and end the workers now (shutdown alone waits for running chunks)."""
+    procs = list(getattr(pool, "_processes", {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
+
+
 def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
-    """Join shard folders of one recipe into `out` (files hard-linked where possible)."""
+    """Join shard folders of one recipe into `out` (files hard-linked where possible).
+
+    Every source row is validated (its `file` must be its own sample's name), so a
+    manifest can never make merge read or write outside the folders it was given.
+    """
     if not shards:
         raise GenerationError("merge: give at least one shard folder")
+    out = Path(out)
+    if out.exists() and not folder_is_empty(out):
+        raise GenerationError(f"merge: --out {out} is not empty")
+    with locked_folder(out):
+        return _merge_locked(out, shards, progress)
+
+
+def _merge_locked(out: Path, shards: list[Path], progress: bool) -> dict:
     infos = [read_info(s) for s in shards]
     base = infos[0]
     for s, info in zip(shards[1:], infos[1:]):
         diff = identity_diff(base.get("recipe", {}), info.get("recipe", {}))
         if diff:
             raise GenerationError(f"merge: {s} was made with another recipe than {shards[0]} ({diff})")
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise GenerationError(f"merge: --out {out} is not empty")
     (out / "samples").mkdir(parents=True, exist_ok=True)
     by_index: dict[int, tuple[Path, dict]] = {}
     for s in shards:
@@ -191,12 +267,11 @@ def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
     for idx in tqdm(sorted(by_index), desc="merge", unit="sample", disable=not progress):
         src_root, row = by_index[idx]
         src, dst = src_root / row["file"], out / row["file"]
-        tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
-        try:
-            os.link(src, tmp)
-        except OSError:
-            shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
+        with atomic_target(dst) as tmp:
+            try:
+                os.link(src, tmp)
+            except OSError:
+                shutil.copyfile(src, tmp)
     rows = [by_index[i][1] for i in sorted(by_index)]
     write_manifest(out / "manifest.jsonl", rows)
     requested = max(int(i.get("count_requested", 0)) for i in infos)

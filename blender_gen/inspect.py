@@ -5,11 +5,10 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
 from .conversions import preview_srgb8
-from .dataset import KIND_LAYERS, DatasetError, open_dataset, read_exr, sha256_file
+from .dataset import KIND_LAYERS, DatasetError, open_dataset, read_exr, save_png, sha256_file
 
 
 def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = True) -> dict:
@@ -99,9 +98,7 @@ def preview_grid(root: Path, out: Path, count: int = 6, skip: frozenset[str] = f
     grid = np.concatenate(rows, axis=0)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp.png")
-    Image.fromarray(grid).save(tmp)
-    tmp.replace(out)
+    save_png(out, grid)
     return out
 
 

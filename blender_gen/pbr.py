@@ -14,10 +14,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from . import scene as S
 from .conversions import preview_srgb8
+from .dataset import save_png
 from .render import SampleRenderer
 
 
@@ -85,7 +85,4 @@ class PbrRenderer(SampleRenderer):
     def _write_preview(self, layers: dict, out_dir: Path, index: int) -> None:
         previews = out_dir / "previews"
         previews.mkdir(exist_ok=True)
-        path = previews / f"{index:06d}.png"
-        tmp = previews / f".{index:06d}.png.tmp"
-        Image.fromarray(preview_srgb8("rgb", layers["rgb"])).save(tmp, format="PNG")
-        tmp.replace(path)
+        save_png(previews / f"{index:06d}.png", preview_srgb8("rgb", layers["rgb"]))

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraRanges
-from .envmap import DEFAULT_SKY_VARIANTS, PROCEDURAL_PREFIX
+from .envmap import DEFAULT_SKY_VARIANTS, HELDOUT_SKY_VARIANTS, PROCEDURAL_PREFIX, PROCEDURAL_SETS
 
 KINDS = ("intrinsics", "pbr")
 
@@ -37,7 +37,7 @@ class Recipe:
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""
         d = asdict(self)
-        d["envmaps"] = [_file_identity(e) if e != "procedural" else e for e in self.envmaps]
+        d["envmaps"] = [_file_identity(e) if e not in PROCEDURAL_SETS else e for e in self.envmaps]
         d["cars"] = [_file_identity(c) if Path(c).suffix else c for c in self.cars]
         d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
         return d
@@ -46,8 +46,11 @@ class Recipe:
         """The environment choices a sample draws from, in a fixed order."""
         names: list[str] = []
         for e in self.envmaps:
-            if e == "procedural":
+            if e in ("procedural", "procedural:train"):
                 names += [f"{PROCEDURAL_PREFIX}sky_{k:02d}" for k in range(self.sky_variants)]
+            elif e == "procedural:heldout":
+                first = DEFAULT_SKY_VARIANTS  # fixed, whatever sky_variants a recipe uses
+                names += [f"{PROCEDURAL_PREFIX}sky_{k:02d}" for k in range(first, first + HELDOUT_SKY_VARIANTS)]
             else:
                 names.append(e)
         return names

@@ -137,9 +137,11 @@ def _settings(data: dict, base: ModelSettings, where: str) -> ModelSettings:
 def load_rules(path: str | Path) -> Rules:
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise RulesError(f"--car-rules {path}: no such file") from None
+    except UnicodeDecodeError as exc:
+        raise RulesError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); expected a TOML rules file") from None
     except tomllib.TOMLDecodeError as exc:
         raise RulesError(f"{path}: not valid TOML ({exc})") from None
     unknown = set(data) - {"model", "files", "rule"}

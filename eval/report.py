@@ -21,10 +21,10 @@ from PIL import Image  # noqa: E402
 
 from blender_gen.conversions import linear_to_srgb, preview_srgb8  # noqa: E402
 from blender_gen.dataset import INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset  # noqa: E402
-from train.config import Config, config_from_dict  # noqa: E402
+from train.config import Config  # noqa: E402
 
 from .decomposition import score_predictions, write_results  # noqa: E402
-from .fid import InceptionFeatures, extract, fid_from_features, kid_from_features  # noqa: E402
+from .fid import FID_MIN_IMAGES, InceptionFeatures, compare_sets, extract  # noqa: E402
 from .images import image_source  # noqa: E402
 
 
@@ -73,70 +73,139 @@ def loss_plot(stats: Path, title: str) -> bytes:
     return buf.getvalue()
 
 
-def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics: Path | None = None,
-                 limit: int = 50, grid: int = 4, inception: str | None = None, progress: bool = True) -> Path:
-    from train.inference import decompose_images, render_dataset
+# The paper's figures (Tables 1 and 3), printed beside ours for reference, keyed by run_label.
+PAPER_TABLE1 = {"CycleGAN": (103.3, 10.2), "MUNIT": (99.0, 13.5), "Ours (full)": (47.6, 4.2),
+                "Ours, w/o shared discr.": (59.2, 4.8), "Ours, w/o decomp. cycle": (99.6, 11.8),
+                "Ours, w/o A": (88.7, 5.4), "Ours, w/o N": (60.2, 4.9), "Ours, w/o F": (56.7, 5.9)}
+PAPER_TABLE3 = {"Ours, w/o shared discr.": (17.75, 54.00, 55.60), "Ours, w/o decomp. cycle": (18.80, 67.21, 71.00),
+                "CycleGAN": (27.82, 68.18, 73.18), "MUNIT": (29.15, 81.44, 74.75), "Ours (full)": (14.73, 52.74, 51.74)}
+
+
+def _cache_key(run: Path, step: int, data: Path, limit: int | None) -> dict:
+    """What cached predictions depend on: the run, its checkpoint, the data set (and its content), the limit."""
+    info = open_dataset(data).info
+    return {"run": str(Path(run).resolve()), "step": step, "data": str(Path(data).resolve()),
+            "data_recipe": info.get("recipe"), "data_count": info.get("count"), "limit": limit}
+
+
+def _cached_predictions(run: Path, data: Path, pred_dir: Path, limit: int | None, progress: bool) -> int:
+    """Decompose `data` into `pred_dir` unless predictions for exactly this key are there; returns the step."""
+    import shutil
+
+    from train.inference import decompose_images, load_run
+
+    step = load_run(run)[2]  # the checkpoint inference will use (the newest readable one)
+    key = _cache_key(run, step, data, limit)
+    info_path = pred_dir / "dataset.json"
+    if info_path.exists():
+        info = json.loads(info_path.read_text())
+        if info.get("complete") and info.get("cache_key") == key:
+            return step
+    shutil.rmtree(pred_dir, ignore_errors=True)
+    decompose_images(run, data, pred_dir, limit=limit, progress=progress)
+    info = json.loads(info_path.read_text())
+    atomic_write_json(info_path, {**info, "cache_key": key})
+    return info["step"]
+
+
+def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics: Path, limit: int | None = None,
+                 grid: int = 4, inception: str | None = None, progress: bool = True) -> Path:
+    """Evaluate every run on the same sets and write report.html, report.md and results.json.
+
+    Refuses sets that overlap against the protocol (eval.protocol); FID/KID fakes are R's
+    renders of `intrinsics`, which must be a set the runs never trained on.
+    """
+    import shutil
+
+    from train.inference import load_run_options, render_dataset
+    from .protocol import check_sets, describe
 
     out = Path(out)
+    runs_opts = [(Path(run), *load_run_options(run)) for run in runs]  # a dataset folder given as a run fails here
+    sets = {"eval": describe("--data", data), "real": describe("--real", real), "fid": describe("--intrinsics", intrinsics)}
+    warnings: list[str] = []
+    for run, opts, _ in runs_opts:
+        train_set = describe(f"{run.name} training intrinsics", opts["intrinsics"])
+        train_real = describe(f"{run.name} real images", opts["real"])
+        sets.setdefault(f"train:{train_set.path}", train_set)
+        sets.setdefault(f"trainreal:{train_real.path}", train_real)
+        for w in check_sets(train_set, train_real, sets["eval"], sets["fid"]):
+            if w not in warnings:
+                warnings.append(w)
     out.mkdir(parents=True, exist_ok=True)
     feat = InceptionFeatures(inception)
-    n_real, real_imgs = image_source(real, limit)
-    real_feats = extract(feat, real_imgs, n_real, progress=progress, desc="real features")
+    real_feats: dict[tuple[int, int], np.ndarray] = {}
     entries = []
-    for k, run in enumerate(runs):
-        opts = json.loads((Path(run) / "training_options.json").read_text())
-        cfg = config_from_dict(opts["config"])
+    for k, (run, opts, cfg) in enumerate(runs_opts):
         label = run_label(cfg)
-        slug = f"{k:02d}_{re.sub(r'[^A-Za-z0-9]+', '_', Path(run).name)}"
+        slug = f"{k:02d}_{re.sub(r'[^A-Za-z0-9]+', '_', run.name)}"
         rdir = out / "runs" / slug
         pred_dir = rdir / "predictions"
-        if not (pred_dir / "dataset.json").exists() or not json.loads((pred_dir / "dataset.json").read_text()).get("complete"):
-            import shutil
-
-            shutil.rmtree(pred_dir, ignore_errors=True)
-            decompose_images(run, data, pred_dir, limit=limit, progress=progress)
-        rows, dec = score_predictions(data, pred_dir, progress=progress)
+        step = _cached_predictions(run, data, pred_dir, limit, progress)
+        rows, dec = score_predictions(data, pred_dir, limit=limit, progress=progress)
         write_results(rows, dec, rdir / "decomposition.json")
-        intr = Path(intrinsics) if intrinsics else Path(opts["intrinsics"])
-        rendered = render_dataset(run, intr, rdir / "rendered", limit=limit, progress=progress)
-        n_fake, fake_imgs = image_source(rdir / "rendered")
-        fake_feats = extract(feat, fake_imgs, n_fake, progress=progress, desc=f"{label} features")
-        kid, kid_std = kid_from_features(real_feats, fake_feats)
-        fidkid = {"fid": fid_from_features(real_feats, fake_feats), "kid": kid, "kid_std": kid_std,
-                  "real_images": len(real_feats), "fake_images": len(fake_feats)}
+        shutil.rmtree(rdir / "rendered", ignore_errors=True)  # always this step's renders, never a stale mix
+        rendered = render_dataset(run, intrinsics, rdir / "rendered", limit=limit, progress=progress)
+        size = (cfg.data.height, cfg.data.width)
+        if size not in real_feats:
+            n_real, real_imgs = image_source(real, size, limit)
+            real_feats[size] = extract(feat, real_imgs, n_real, progress=progress, desc=f"real features {size}")
+        fidkid = compare_sets(real, rdir / "rendered", size, limit, model=feat, real_features=real_feats[size],
+                              progress=progress)
         atomic_write_json(rdir / "fid.json", fidkid)
-        stats = Path(run) / "stats.jsonl"
+        stats = run / "stats.jsonl"
         curve = loss_plot(stats, label) if stats.exists() else None
         if curve:
             atomic_write_bytes(rdir / "losses.png", curve)
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,
-                        "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "intrinsics": intr,
-                        "step": json.loads((pred_dir / "dataset.json").read_text())["step"]})
-    page = _html(entries, data, real, grid)
+                        "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
+    datasets = [v.summary() for v in sets.values()]
+    page = _html(entries, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
-    atomic_write_bytes(out / "report.md", _markdown(entries).encode())
-    atomic_write_json(out / "results.json", [{k: e[k] for k in ("run", "label", "step", "dec", "fid")} for e in entries])
+    atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
+    atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in ("run", "label", "step", "dec", "fid")}
+                                                      for e in entries], "datasets": datasets, "warnings": warnings})
     return out / "report.html"
 
 
 def _table1(entries) -> tuple[list[str], list[list[str]]]:
-    head = ["Run", "Config", "Step", "FID", "KID x100", "KID (raw)", "images (real/fake)"]
-    rows = [[Path(e["run"]).name, e["label"], str(e["step"]), f"{e['fid']['fid']:.2f}", f"{100 * e['fid']['kid']:.2f}",
-             f"{e['fid']['kid']:.5f} ± {e['fid']['kid_std']:.5f}",
-             f"{e['fid']['real_images']}/{e['fid']['fake_images']}"] for e in entries]
+    head = ["Run", "Config", "Step", "FID", "KID x100", "KID (raw)", "images (real/fake)", "paper FID / KID x100"]
+    rows = []
+    for e in entries:
+        f = e["fid"]
+        paper = PAPER_TABLE1.get(e["label"])
+        fid = f"{f['fid']:.2f}" + (" (biased: < %d images)" % f["fid_min_images"] if f["fid_biased"] else "")
+        rows.append([Path(e["run"]).name, e["label"], str(e["step"]), fid, f"{100 * f['kid']:.2f}",
+                     f"{f['kid']:.5f} ± {f['kid_std']:.5f}", f"{f['real_images']}/{f['fake_images']}",
+                     f"{paper[0]:.1f} / {paper[1]:.1f}" if paper else "-"])
     return head, rows
 
 
 def _table3(entries) -> tuple[list[str], list[list[str]]]:
     head = ["Run", "Config", "Normal mean (deg)", "Normal median", "< 11.25°", "< 22.5°", "< 30°",
-            "Albedo L1 (0-255)", "Albedo si-L1 (lin.)", "Reflection L1 (0-255)", "samples"]
+            "Albedo L1 (0-255)", "Albedo si-L1 (lin.)", "Reflection L1 (0-255)", "samples",
+            "paper normal / albedo / reflection"]
     rows = []
     for e in entries:
         d = e["dec"]
+        paper = PAPER_TABLE3.get(e["label"])
         rows.append([Path(e["run"]).name, e["label"], f"{d['normal_mean_deg']:.2f}", f"{d['normal_median_deg']:.2f}",
                      f"{d['normal_under_11.25_pct']:.1f}%", f"{d['normal_under_22.5_pct']:.1f}%",
                      f"{d['normal_under_30_pct']:.1f}%", f"{d['albedo_l1_srgb255']:.2f}",
-                     f"{d['albedo_si_l1_linear']:.4f}", f"{d['reflection_l1_srgb255']:.2f}", str(d["samples"])])
+                     f"{d['albedo_si_l1_linear']:.4f}", f"{d['reflection_l1_srgb255']:.2f}",
+                     f"{d['samples']} of {d.get('expected', d['samples'])}",
+                     f"{paper[0]:.2f}° / {paper[1]:.2f} / {paper[2]:.2f}" if paper else "-"])
+    return head, rows
+
+
+def _datasets_table(datasets: list[dict]) -> tuple[list[str], list[list[str]]]:
+    head = ["Role", "Path", "Kind", "Images", "Seed", "Cars", "Environments"]
+
+    def names(c: dict) -> str:
+        return f"{len(c)}: " + ", ".join(sorted(c)[:6]) + (" ..." if len(c) > 6 else "") if c else "-"
+
+    rows = [[d["role"], d["path"], d["kind"], str(d["count"]), "-" if d["seed"] is None else str(d["seed"]),
+             names(d["cars"]), names(d["envmaps"])] for d in datasets]
     return head, rows
 
 
@@ -146,12 +215,18 @@ def _md_table(head, rows) -> str:
     return "\n".join(lines)
 
 
-def _markdown(entries) -> str:
+def _markdown(entries, datasets, warnings) -> str:
     parts = ["# Intrinsic Autoencoder evaluation", "",
              "## Table 1: realism of R's images (FID and KID against real images; lower is better)", "",
              _md_table(*_table1(entries)), "",
+             f"FID from fewer than {FID_MIN_IMAGES} images per set is biased upwards and marked so; KID is unbiased, "
+             "so small comparisons should lean on it. The paper's figures (Table 1, 256x512, 16,000 real photos, "
+             "full training) are printed for reference, not as a like-for-like comparison.", "",
              "## Table 3: decomposition errors against Cycles ground truth (lower is better, except the % columns)", "",
-             _md_table(*_table3(entries)), "", "Pictures and loss curves: report.html; per-run files under runs/."]
+             _md_table(*_table3(entries)), "",
+             "## Data sets", "", _md_table(*_datasets_table(datasets)), ""]
+    parts += [f"> WARNING: {w}" for w in warnings]
+    parts += ["", "Pictures and loss curves: report.html; per-run files under runs/."]
     return "\n".join(parts) + "\n"
 
 
@@ -159,14 +234,15 @@ def _img(src: str, alt: str) -> str:
     return f'<img src="{src}" alt="{html.escape(alt)}">'
 
 
-def _html(entries, data: Path, real: Path, grid: int) -> str:
+def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets: list[dict],
+          warnings: list[str]) -> str:
     def table(head, rows):
         th = "".join(f"<th>{html.escape(h)}</th>" for h in head)
         trs = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
         return f"<table><thead><tr>{th}</tr></thead><tbody>{trs}</tbody></table>"
 
     # rendering grid: the same intrinsics inputs, then each run's image
-    intr_ds = open_dataset(entries[0]["intrinsics"], kinds=("intrinsics", "pbr"))
+    intr_ds = open_dataset(intrinsics, kinds=("intrinsics", "pbr"))
     ren_rows = []
     for j in range(min(grid, len(intr_ds))):
         layers = intr_ds.load(j, INTRINSIC_LAYERS)
@@ -200,6 +276,7 @@ def _html(entries, data: Path, real: Path, grid: int) -> str:
                       for k in INTRINSIC_LAYERS]
             dec_rows.append("<tr>" + "".join(cells) + "</tr>")
 
+    warn_html = "".join(f'<p class="warning">WARNING: {html.escape(w)}</p>' for w in warnings)
     curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(Path(e['run']).name)})</h3>"
                      + _img(_data_uri(e["curve"]), f"loss curves {e['label']}") for e in entries if e["curve"])
     return f"""<!DOCTYPE html>
@@ -210,6 +287,7 @@ table {{ border-collapse: collapse; margin: 1em 0; }}
 th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: center; font-size: 13px; }}
 td img {{ max-width: 256px; display: block; }}
 h3 {{ margin-bottom: 0.2em; }}
+.warning {{ background: #fff3cd; border: 1px solid #e0b000; padding: 6px 10px; }}
 </style>
 <script>
 window.__errors = [];
@@ -222,9 +300,14 @@ window.addEventListener("load", () => {{
 }});
 </script></head><body>
 <h1>Intrinsic Autoencoder evaluation</h1>
-<p>Decomposition data: <code>{html.escape(str(data))}</code>; real images: <code>{html.escape(str(real))}</code>.</p>
+<p>Decomposition data: <code>{html.escape(str(data))}</code>; real images: <code>{html.escape(str(real))}</code>;
+FID intrinsics: <code>{html.escape(str(intrinsics))}</code>.</p>
+{warn_html}
 <h2>Table 1: realism of R's images (FID / KID against real images, lower is better)</h2>
 {table(*_table1(entries))}
+<p>FID from fewer than {FID_MIN_IMAGES} images per set is biased upwards and marked so; KID is unbiased, so small
+comparisons should lean on it. The paper's figures are printed for reference (its setting: 256x512, 16,000 real
+photos, full training), not as a like-for-like comparison.</p>
 <h2>Table 3: decomposition errors against Cycles ground truth</h2>
 <p>Normals: angle after normalising predictions; albedo and reflection: L1 on the 0-255 sRGB scale; albedo also
 scale-invariant L1 on linear values. Lower is better except the % columns.</p>
@@ -234,6 +317,10 @@ scale-invariant L1 on linear values. Lower is better except the % columns.</p>
 <h2>Intrinsic decomposition: each run's H next to the ground truth</h2>
 <table><thead><tr><th></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
 <tbody>{''.join(dec_rows)}</tbody></table>
+<h2>Data sets</h2>
+<p>Training intrinsics, real images and the evaluation set must not share samples (refused otherwise); FID fakes
+are R's renders of intrinsics the runs never saw.</p>
+{table(*_datasets_table(datasets))}
 <h2>Training losses</h2>
 {curves}
 <p id="selfcheck">not loaded</p>

@@ -15,11 +15,11 @@ from train.loop import fit
 from train.model import build_model
 
 from .conftest import ROOT
-from .train_helpers import TINY, tiny_intrinsics, tiny_overrides, tiny_photos
+from .train_helpers import tiny_args, tiny_intrinsics, tiny_overrides, tiny_photos
 
 
 def cfg_for(kind: str, *extra: str):
-    return load_config(kind, tiny_overrides() + list(extra))
+    return load_config(kind, tiny_overrides(kind) + list(extra))
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,10 @@ def test_checkpoint_and_exact_resume(kind, data, tmp_path):
     intr, photos = data
     base = [sys.executable, "-m", "train.cli", "fit", "--intrinsics", str(intr), "--real", str(photos), "--quiet"]
     whole, parts = tmp_path / "whole", tmp_path / "parts"
-    subprocess.run(base + ["--config", kind, "--run-dir", str(whole), "--max-steps", "4", *TINY], cwd=ROOT, check=True)
-    subprocess.run(base + ["--config", kind, "--run-dir", str(parts), "--max-steps", "3", *TINY], cwd=ROOT, check=True)
+    subprocess.run(base + ["--config", kind, "--run-dir", str(whole), "--max-steps", "4", *tiny_args(kind)], cwd=ROOT,
+                   check=True)
+    subprocess.run(base + ["--config", kind, "--run-dir", str(parts), "--max-steps", "3", *tiny_args(kind)], cwd=ROOT,
+                   check=True)
     subprocess.run([sys.executable, "-m", "train.cli", "fit", "--run-dir", str(parts), "--max-steps", "4", "--quiet"],
                    cwd=ROOT, check=True)
     a = [json.loads(x) for x in (whole / "stats.jsonl").read_text().splitlines()]
@@ -99,3 +101,60 @@ def test_short_overfit(kind, key, data, tmp_path):
     fit(tmp_path / kind, cfg, str(intr), str(photos), max_steps=40, progress=False)
     vals = [json.loads(x)[key] for x in (tmp_path / kind / "stats.jsonl").read_text().splitlines()]
     assert np.mean(vals[-8:]) < 0.6 * np.mean(vals[:4]), (vals[:4], vals[-8:])
+
+
+def test_reference_initialisation():
+    torch.manual_seed(0)
+    iae = build_model(load_config("paper", ["model.r_local_enhancers=0", "model.r_ngf=64"]))
+    convs = [m for m in iae.modules() if isinstance(m, torch.nn.Conv2d) and m.weight.numel() > 100_000]
+    assert convs and all(abs(float(c.weight.detach().std()) - 0.02) < 0.002 for c in convs)
+    assert all(float(m.bias.abs().max()) == 0 for m in iae.modules() if isinstance(m, torch.nn.Conv2d))
+    cyc = build_model(load_config("cyclegan"))
+    assert abs(float(cyc.G_render.model[1].weight.detach().std()) - 0.02) < 0.002
+    munit = build_model(load_config("munit"))
+    conv = munit.gen_a.content.model[1]  # 9 -> 64, 7x7: He-normal std sqrt(2 / fan_in)
+    assert abs(float(conv.weight.detach().std()) / (2 / (9 * 49)) ** 0.5 - 1) < 0.05
+    assert abs(float(munit.D_b.nets[0][1].weight.detach().std()) - 0.02) < 0.003
+
+
+def test_munit_discriminator_is_the_reference_layout_and_its_loss_sums_scales():
+    model = build_model(load_config("munit"))
+    net = model.D_b.nets[0]
+    convs = [m for m in net if isinstance(m, torch.nn.Conv2d)]
+    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs] == [
+        (3, 64, (4, 4), (2, 2)), (64, 128, (4, 4), (2, 2)), (128, 256, (4, 4), (2, 2)), (256, 512, (4, 4), (2, 2)),
+        (512, 1, (1, 1), (1, 1))]
+    assert sum(isinstance(m, torch.nn.ReflectionPad2d) for m in net) == 4
+    assert not any(isinstance(m, (torch.nn.InstanceNorm2d, torch.nn.BatchNorm2d)) for m in model.D_b.modules())
+    assert len(model.D_b.nets) == 3
+    small = build_model(cfg_for("munit"))
+    m, x = torch.randn(1, 9, 32, 64).tanh(), torch.randn(1, 3, 32, 64).tanh()
+    out = small.forward_all(m, x)
+    _, logs = small.discriminator_loss(out)
+    real = small.D_b(x)
+    assert len(real) == 3
+    expected = sum(float(((d - 1) ** 2).mean()) for d in real)
+    assert logs["D/D_b_real"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_munit_adain_takes_the_mlp_outputs_as_scale_and_bias():
+    model = build_model(cfg_for("munit")).eval()
+    dec = model.gen_b.decoder
+    style = torch.randn(2, 8)
+    with torch.no_grad():
+        params = dec.mlp(style)
+        dec(torch.randn(2, dec.adains[0].channels, 8, 16), style)
+    c = dec.adains[0].channels
+    assert torch.equal(dec.adains[0].bias, params[:, :c]) and torch.equal(dec.adains[0].weight, params[:, c:2 * c])
+
+
+def test_munit_optimiser_has_weight_decay_and_the_step_policy():
+    from train.loop import lr_factor
+
+    cfg = load_config("munit")
+    assert (cfg.optim.weight_decay, cfg.optim.lr_policy, cfg.optim.step_size, cfg.optim.step_gamma) == (1e-4, "step",
+                                                                                                        100000, 0.5)
+    f = lr_factor(cfg.optim)
+    assert [f(0), f(99_999), f(100_000), f(250_000)] == [1.0, 1.0, 0.5, 0.25]
+    g = lr_factor(load_config("paper").optim)
+    assert [g(0), g(100_000), g(150_000), g(200_000)] == [1.0, 1.0, 0.5, 0.0]

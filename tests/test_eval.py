@@ -121,6 +121,7 @@ def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
     intr, photos = tiny_intrinsics(root / "intr"), tiny_photos(root / "photos")
     pbr = tiny_intrinsics(root / "pbr", n=3, seed=5, kind="pbr")
+    unseen = tiny_intrinsics(root / "unseen", n=3, seed=9)
     runs = []
     for name, extra in (("full", []), ("noshared", ["--set", "loss.shared_discriminator=false"])):
         run = root / name
@@ -129,8 +130,8 @@ def report(tmp_path_factory):
                        cwd=ROOT, check=True, capture_output=True)
         runs.append(str(run))
     out = root / "out"
-    proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--out", str(out), "--limit", "4",
-                "--grid", "2", "--quiet")
+    proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen),
+                "--out", str(out), "--grid", "2", "--quiet")
     return out, proc
 
 
@@ -138,7 +139,7 @@ def test_report_has_tables_like_the_papers(report):
     out, proc = report
     md = (out / "report.md").read_text()
     assert "Table 1" in md and "Table 3" in md and "Ours (full)" in md and "Ours, w/o shared discr." in md
-    results = json.loads((out / "results.json").read_text())
+    results = json.loads((out / "results.json").read_text())["runs"]
     assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
     assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)
     assert list((out / "runs").glob("*/losses.png")) and list((out / "runs").glob("*/decomposition.csv"))
@@ -163,3 +164,120 @@ def test_report_page_loads_in_headless_chromium(report, tmp_path):
     shot = out / "report_screenshot.png"
     subprocess.run(flags + ["--window-size=1280,2400", f"--screenshot={shot}", page], capture_output=True, timeout=120)
     assert shot.exists() and shot.stat().st_size > 10_000
+
+
+def test_tf1_bilinear_resize_on_hand_computed_cases():
+    import torch
+
+    from eval.fid import tf1_bilinear_resize
+
+    row = lambda *v: torch.tensor([[[list(v)]]], dtype=torch.float32)  # noqa: E731  (1, 1, 1, W)
+    # TF1 maps output j to input j * in / out (no half-pixel shift) and clamps at the border
+    assert tf1_bilinear_resize(row(0, 10, 20, 30), 1, 2).flatten().tolist() == [0, 20]
+    assert tf1_bilinear_resize(row(0, 10), 1, 4).flatten().tolist() == [0, 5, 10, 10]
+    assert tf1_bilinear_resize(row(0, 10, 20), 1, 2).flatten().tolist() == [0, 15]
+    col = torch.tensor([0.0, 30.0]).reshape(1, 1, 2, 1)
+    assert tf1_bilinear_resize(col, 3, 1).flatten().tolist() == pytest.approx([0, 20, 30])
+    # torch's half-pixel bilinear differs: the reference FID would not be reproduced by it
+    half = torch.nn.functional.interpolate(row(0, 10, 20, 30), size=(1, 2), mode="bilinear", align_corners=False)
+    assert half.flatten().tolist() == [5, 25]
+
+
+def test_fid_sets_pass_the_trainers_cover_and_crop(tmp_path):
+    from PIL import Image
+
+    from eval.images import image_source
+
+    (tmp_path / "wide").mkdir()
+    img = np.zeros((20, 100, 3), np.uint8)
+    img[:, :25] = 255  # white left quarter, outside the centre 2:1 window
+    Image.fromarray(img).save(tmp_path / "wide" / "a.png")
+    n, it = image_source(tmp_path / "wide", (32, 64))
+    (x,) = list(it)
+    assert n == 1 and x.shape == (32, 64, 3) and x.max() == 0
+
+
+def _with_recipe(root, **recipe):
+    info = json.loads((root / "dataset.json").read_text())
+    (root / "dataset.json").write_text(json.dumps({**info, "seed": recipe.get("seed"), "recipe": recipe}))
+    return root
+
+
+def test_sets_that_share_a_sample_recipe_are_refused_and_shared_cars_reported(tmp_path):
+    from eval.protocol import ProtocolError, check_sets, describe
+
+    base = {"cars": ["procedural:heldout"], "envmaps": ["procedural:heldout"], "camera": {"radius_max": 8}}
+    real = _with_recipe(tiny_intrinsics(tmp_path / "real", n=2, kind="pbr"), kind="pbr", seed=1, samples=8, **base)
+    same = _with_recipe(tiny_intrinsics(tmp_path / "eval", n=2, kind="pbr"), kind="pbr", seed=1, samples=64,
+                        width=128, **base)
+    with pytest.raises(ProtocolError, match="share a sample recipe: the evaluation set repeats"):
+        check_sets(None, describe("real", real), describe("eval", same), None)
+    other = _with_recipe(tiny_intrinsics(tmp_path / "eval2", n=2, kind="pbr"), kind="pbr", seed=2, samples=8, **base)
+    warnings = check_sets(None, describe("real", real), describe("eval", other), None)
+    assert any("shares 1 car model(s) with the real training images" in w for w in warnings)
+    train = _with_recipe(tiny_intrinsics(tmp_path / "train", n=2), kind="intrinsics", seed=0, samples=1, **base)
+    with pytest.raises(ProtocolError, match="FID intrinsics are the run's training intrinsics"):
+        check_sets(describe("train", train), None, None, describe("fid", train))
+
+
+def test_report_refuses_the_training_intrinsics_as_fid_set(report, tmp_path):
+    out, _ = report
+    run = out.parent / "full"
+    opts = json.loads((run / "training_options.json").read_text())
+    pbr = out.parent / "pbr"
+    proc = _cli("report", str(run), "--data", str(pbr), "--real", opts["real"], "--intrinsics", opts["intrinsics"],
+                "--out", str(tmp_path / "o"), "--quiet", check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert "fakes must come from intrinsics the run never saw" in proc.stderr
+    not_a_run = _cli("report", str(pbr), "--data", str(pbr), "--real", opts["real"], "--intrinsics",
+                     str(out.parent / "unseen"), "--out", str(tmp_path / "o2"), "--quiet", check=False)
+    assert not_a_run.returncode == 1 and "not a run folder" in not_a_run.stderr and "Traceback" not in not_a_run.stderr
+
+
+def test_report_recomputes_predictions_after_more_training_or_other_data(tmp_path):
+    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
+    pbr_a = tiny_intrinsics(tmp_path / "pbr_a", n=2, seed=5, kind="pbr")
+    pbr_b = tiny_intrinsics(tmp_path / "pbr_b", n=3, seed=6, kind="pbr")
+    unseen = tiny_intrinsics(tmp_path / "unseen", n=2, seed=9)
+    run = tmp_path / "run"
+    fit = [sys.executable, "-m", "train.cli", "fit", "--run-dir", str(run), "--quiet"]
+    subprocess.run(fit + ["--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--max-steps", "3",
+                          *TINY], cwd=ROOT, check=True, capture_output=True)
+    out = tmp_path / "out"
+    args = ["--real", str(photos), "--intrinsics", str(unseen), "--out", str(out), "--quiet"]
+    _cli("report", str(run), "--data", str(pbr_a), *args)
+    first = json.loads((out / "results.json").read_text())["runs"][0]
+    subprocess.run(fit + ["--max-steps", "6"], cwd=ROOT, check=True, capture_output=True)
+    _cli("report", str(run), "--data", str(pbr_a), *args)
+    second = json.loads((out / "results.json").read_text())["runs"][0]
+    assert (first["step"], second["step"]) == (3, 6)
+    preds = out / "runs" / "00_run" / "predictions"
+    assert json.loads((preds / "dataset.json").read_text())["cache_key"]["step"] == 6
+    _cli("report", str(run), "--data", str(pbr_b), *args)
+    third = json.loads((out / "results.json").read_text())["runs"][0]
+    assert third["dec"]["samples"] == 3 and third["dec"]["data"] == str(pbr_b.resolve())
+
+
+def test_predictions_of_another_set_are_refused_and_shortfalls_exit_nonzero(tmp_path):
+    pbr = tiny_intrinsics(tmp_path / "pbr", n=3, kind="pbr", seed=1)
+    other = tiny_intrinsics(tmp_path / "other", n=3, kind="pbr", seed=2)
+    preds = tmp_path / "preds"
+    shutil.copytree(other, preds)
+    info = json.loads((preds / "dataset.json").read_text())
+    rows = [json.loads(line) for line in (preds / "manifest.jsonl").read_text().splitlines()]
+    (preds / "manifest.jsonl").write_text("".join(json.dumps({**r, "source_sha256": r["sha256"]}) + "\n" for r in rows))
+    (preds / "dataset.json").write_text(json.dumps({**info, "kind": "predictions"}))
+    bad = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--quiet", check=False)
+    assert bad.returncode == 1 and "predicted from another image" in bad.stderr and "Traceback" not in bad.stderr
+    # two of three predictions, made from the right images
+    own = [json.loads(line) for line in (pbr / "manifest.jsonl").read_text().splitlines()]
+    shutil.rmtree(preds)
+    shutil.copytree(pbr, preds)
+    (preds / "manifest.jsonl").write_text("".join(json.dumps({**r, "source_sha256": r["sha256"]}) + "\n" for r in own[:2]))
+    short = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--quiet", check=False)
+    assert short.returncode == 1 and "WARNING: 1 of 3 samples" in short.stderr and "normal      mean" in short.stdout
+    ok = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--allow-missing", "--quiet")
+    assert ok.returncode == 0
+    assert _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--limit", "2", "--quiet").returncode == 0
+    neg = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--limit", "-1", check=False)
+    assert neg.returncode == 2 and "Invalid value for '--limit'" in neg.stderr

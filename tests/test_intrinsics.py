@@ -204,7 +204,7 @@ def test_inspect_summarises_and_writes_a_preview_grid(tiny_intrinsics):
     (["--envmap", "missing.hdr"], "--envmap missing.hdr: no such file"),
     (["--resolution", "512by256"], "--resolution '512by256': expected WIDTHxHEIGHT"),
     (["--resolution", "0x256"], "between 8 and 8192"),
-    (["--count", "0"], "--count 0: expected at least 1"),
+    (["--count", "0"], "Invalid value for '--count'"),
     (["--shard", "3/2"], "--shard '3/2'"),
 ])
 def test_bad_input_gives_a_one_line_error(tmp_path, args, message):

@@ -95,4 +95,4 @@ def test_pbr_resumes_and_rejects_bad_input(tmp_path):
     bad = run_gen("pbr", "--out", str(out), "--count", "2", "--resolution", "64x32", "--samples", "16", check=False)
     assert bad.returncode != 0 and "another recipe" in bad.stderr
     bad = run_gen("pbr", "--out", str(tmp_path / "q"), "--count", "1", "--samples", "0", check=False)
-    assert bad.returncode != 0 and "--samples 0" in bad.stderr
+    assert bad.returncode != 0 and "Invalid value for '--samples'" in bad.stderr

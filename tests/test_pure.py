@@ -89,7 +89,7 @@ def test_camera_constraints_hold_over_many_draws():
 
 def test_camera_sampler_fails_clearly_when_impossible():
     pts = np.concatenate([m.verts for m in build_car(load_catalogue()["van_b"]).values()])
-    with pytest.raises(RuntimeError, match="no valid camera"):
+    with pytest.raises(ValueError, match="no valid camera"):
         sample_camera(np.random.default_rng(0), pts, 512, 256,
                       CameraRanges(radius_min=0.5, radius_max=1.0, max_tries=50))
 
@@ -147,10 +147,15 @@ def test_exr_round_trip_is_half_float_and_atomic(tmp_path):
 
 
 def test_torn_last_manifest_line_is_dropped(tmp_path):
+    import json
+
+    from blender_gen.dataset import sample_filename
+
+    row = lambda i: json.dumps({"index": i, "file": sample_filename(i), "sha256": "0" * 64})  # noqa: E731
     m = tmp_path / "manifest.jsonl"
-    m.write_text('{"index": 0}\n{"index": 1}\n{"ind')
+    m.write_text(f'{row(0)}\n{row(1)}\n{{"ind')
     assert [r["index"] for r in read_manifest(m)] == [0, 1]
-    m.write_text('{"index": 0}\n{"ind\n{"index": 2}\n')
+    m.write_text(f'{row(0)}\n{{"ind\n{row(2)}\n')
     with pytest.raises(ValueError, match="line 2"):
         read_manifest(m)
 

@@ -53,12 +53,12 @@ def test_network_shapes(h, w):
 
 def test_losses_against_hand_computed_values():
     d = [torch.tensor([[0.5, 1.0]]), torch.tensor([[0.0]])]
-    # lsgan, real: ((0.5-1)^2 + 0)/2 = 0.125 at scale 1; (0-1)^2 = 1 at scale 2; mean = 0.5625
-    assert gan_loss(d, True, "lsgan").item() == pytest.approx(0.5625)
-    assert gan_loss(d, False, "lsgan").item() == pytest.approx(((0.25 + 1.0) / 2 + 0.0) / 2)
+    # lsgan, real: ((0.5-1)^2 + 0)/2 = 0.125 at scale 1; (0-1)^2 = 1 at scale 2; summed over scales (pix2pixHD)
+    assert gan_loss(d, True, "lsgan").item() == pytest.approx(1.125)
+    assert gan_loss(d, False, "lsgan").item() == pytest.approx((0.25 + 1.0) / 2 + 0.0)
     # bce, real: -log(sigmoid(x)) = softplus(-x)
     sp = lambda x: math.log1p(math.exp(-x))  # noqa: E731
-    assert gan_loss(d, True, "bce").item() == pytest.approx(((sp(0.5) + sp(1.0)) / 2 + sp(0.0)) / 2, rel=1e-6)
+    assert gan_loss(d, True, "bce").item() == pytest.approx((sp(0.5) + sp(1.0)) / 2 + sp(0.0), rel=1e-6)
     # smooth L1 with beta 0.5: |0.2| < beta -> 0.5*0.04/0.5 = 0.04; |1.0| -> 1.0 - 0.25 = 0.75
     assert cycle_loss(torch.tensor([0.2, 1.0]), torch.zeros(2), 0.5).item() == pytest.approx((0.04 + 0.75) / 2)
     # normal length: |(0.6, 0, 0)| = 0.6 -> 0.4; |(0, 2, 0)| = 2 -> 1.0; (0.1, 0, 0) below threshold: ignored
@@ -66,21 +66,57 @@ def test_losses_against_hand_computed_values():
     assert normal_length_loss(n, 0.5).item() == pytest.approx((0.4 + 1.0) / 2)
 
 
-def test_which_fakes_reach_which_discriminator():
+WIRING = {  # switches -> (outputs computed, D_I fakes, D_M fakes, normal-length inputs)
+    (): ({"fake_I", "rec_M", "fake_M", "rec_I"}, ["fake_I", "rec_I"], ["fake_M", "rec_M"]),
+    (("loss__shared_discriminator", False),): ({"fake_I", "rec_M", "fake_M", "rec_I"}, ["fake_I"], ["fake_M"]),
+    # w/o decomposition cycle: only M_s -> R -> H; D_I: I_r vs R(M_s); D_M: M_s vs H(R(M_s))
+    (("loss__decomposition_cycle", False),): ({"fake_I", "rec_M"}, ["fake_I"], ["rec_M"]),
+    # the mirror: only I_r -> H -> R; D_I: I_r vs R(H(I_r)); D_M: M_s vs H(I_r)
+    (("loss__rendering_cycle", False),): ({"fake_M", "rec_I"}, ["rec_I"], ["fake_M"]),
+}
+
+
+@pytest.mark.parametrize("switches", list(WIRING))
+def test_which_tensors_reach_which_discriminator_and_loss(switches):
+    computed, d_i, d_m = WIRING[switches]
     x9, x3 = torch.randn(1, 9, 32, 64).tanh(), torch.randn(1, 3, 32, 64).tanh()
-    shared = IntrinsicAutoencoder(tiny_cfg())
-    wiring = {k: v[1] for k, v in shared.discriminator_inputs(shared.forward_all(x9, x3)).items()}
-    assert wiring == {"D_I": ["fake_I", "rec_I"], "D_M": ["fake_M", "rec_M"]}
-    separate = IntrinsicAutoencoder(tiny_cfg(loss__shared_discriminator=False))
-    wiring = {k: v[1] for k, v in separate.discriminator_inputs(separate.forward_all(x9, x3)).items()}
-    assert wiring == {"D_I": ["fake_I"], "D_M": ["fake_M"]}
-    ren_only = IntrinsicAutoencoder(tiny_cfg(loss__decomposition_cycle=False))
-    out = ren_only.forward_all(x9, x3)
-    assert "rec_I" not in out and "rec_M" in out
-    _, logs = ren_only.generator_loss(out)
-    assert "G/dec_cycle" not in logs and "G/ren_cycle" in logs
-    reals = shared.discriminator_inputs(shared.forward_all(x9, x3))
-    assert reals["D_I"][0] is x3 and reals["D_M"][0] is x9
+    model = IntrinsicAutoencoder(tiny_cfg(**dict(switches)))
+    out = model.forward_all(x9, x3)
+    assert set(out) - {"M_s", "I_r"} == computed
+    wiring = model.discriminator_inputs(out)
+    assert wiring["D_I"][0] is x3 and wiring["D_M"][0] is x9
+    assert (wiring["D_I"][1], wiring["D_M"][1]) == (d_i, d_m)
+    _, logs = model.generator_loss(out)
+    assert ("G/ren_cycle" in logs) == ("rec_M" in computed) and ("G/dec_cycle" in logs) == ("rec_I" in computed)
+    assert {k for k in logs if k.startswith("G/adv_")} == {f"G/adv_D_I_{f}" for f in d_i} | {f"G/adv_D_M_{f}" for f in d_m}
+    # pictures still show every output, so an ablated H can be judged on real images
+    assert set(model.forward_all(x9, x3, everything=True)) == {"M_s", "I_r", "fake_I", "rec_M", "fake_M", "rec_I"}
+
+
+def _generator_grads(model, x9, x3):
+    model.zero_grad(set_to_none=True)
+    loss, _ = model.generator_loss(model.forward_all(x9, x3))
+    loss.backward()
+    return {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+
+
+@pytest.mark.parametrize("switch, unseen", [("loss__decomposition_cycle", "real"), ("loss__rendering_cycle", "synthetic")])
+def test_an_ablated_cycle_lets_no_input_of_its_domain_reach_the_generators(switch, unseen):
+    torch.manual_seed(0)
+    model = IntrinsicAutoencoder(tiny_cfg(**{switch: False}))
+    x9, x3 = torch.randn(2, 9, 32, 64).tanh(), torch.randn(2, 3, 32, 64).tanh()
+    other9, other3 = torch.randn(2, 9, 32, 64).tanh(), torch.randn(2, 3, 32, 64).tanh()
+    a = _generator_grads(model, x9, x3)
+    b = _generator_grads(model, x9, other3) if unseen == "real" else _generator_grads(model, other9, x3)
+    h_grads = [n for n in a if n.startswith("H.")]
+    assert h_grads, "H must still learn from the other cycle"
+    for name in a:  # the generators' gradients do not depend on the unseen domain's images at all
+        assert torch.equal(a[name], b[name]), name
+    full = IntrinsicAutoencoder(tiny_cfg())
+    full.load_state_dict(model.state_dict())
+    c = _generator_grads(full, x9, x3)
+    d = _generator_grads(full, x9, other3) if unseen == "real" else _generator_grads(full, other9, x3)
+    assert any(not torch.equal(c[n], d[n]) for n in c if n.startswith("H.")), "the full model does see both domains"
 
 
 def test_discriminator_step_never_moves_generators_and_vice_versa():
@@ -118,6 +154,19 @@ def test_real_images_from_photos_are_resized_and_centre_cropped(data):
     x = reals[(0, False)]
     assert x.shape == (3, 32, 64) and -1.0 <= x.min() and x.max() <= 1.0
     assert torch.equal(reals[(0, True)], x.flip(-1))
+
+
+def test_photos_of_another_aspect_are_covered_then_centre_cropped(tmp_path):
+    from PIL import Image
+
+    img = np.zeros((20, 100, 3), np.uint8)
+    img[:, :25] = (255, 0, 0)  # a red left quarter: outside the centre 2:1 window of a 5:1 photo
+    img[:, 25:] = (0, 0, 255)
+    (tmp_path / "p").mkdir()
+    Image.fromarray(img).save(tmp_path / "p" / "wide.png")
+    x = RealImages(tmp_path / "p", 32, 64)[(0, False)]
+    assert x.shape == (3, 32, 64)
+    assert float(x[0].max()) < -0.9 and float(x[2].min()) > 0.9, "only the blue centre survives, undistorted"
 
 
 def _run(*args, env=None, check=True):
@@ -233,3 +282,110 @@ def test_ddp_two_cpu_processes_gloo(data, tmp_path):
     rows = _stats(run)
     assert [r["step"] for r in rows] == [1, 2, 3] and all(math.isfinite(r["G/total"]) for r in rows)
     assert json.loads((run / "checkpoints" / "latest.json").read_text())["step"] == 3
+
+
+@pytest.mark.parametrize("preset, setting, message", [
+    ("cyclegan", "model.d_scales=3", "model.d_scales does not apply to model.kind = 'cyclegan'"),
+    ("cyclegan", "loss.w_ren=10", "loss.w_ren does not apply"),
+    ("munit", "cyclegan.pool=10", "cyclegan.pool does not apply to model.kind = 'munit'"),
+    ("paper", "munit.dim=8", "munit.dim does not apply to model.kind = 'iae'"),
+    ("paper", "data.batch_size=0", "data.batch_size: expected at least 1"),
+    ("paper", "optim.lr=0", "optim.lr: expected a learning rate"),
+    ("paper", "run.log_every=0", "run.log_every: expected at least 1"),
+    ("paper", "data.workers=-1", "data.workers: expected at least 0"),
+    ("paper", "optim.lr_policy=cosine", "optim.lr_policy: expected one of"),
+])
+def test_settings_a_model_kind_ignores_or_out_of_range_are_refused(preset, setting, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_config(preset, [setting])
+
+
+def test_every_value_of_the_paper_preset_says_where_it_comes_from():
+    from train.config import PRESETS_DIR
+
+    lines = [ln for ln in (PRESETS_DIR / "paper.toml").read_text().splitlines() if "=" in ln and not ln.startswith("#")]
+    assert len(lines) > 30
+    for line in lines:
+        assert "# paper:" in line or "# chosen:" in line, line
+    cfg = load_config("paper")
+    assert (cfg.loss.gan, cfg.loss.w_ren, cfg.loss.w_dec, cfg.model.d_scales, cfg.model.h_blocks) == ("bce", 1, 1, 2, 5)
+
+
+def _fit_args(data, run, *extra):
+    intr, photos = data
+    return ("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(run),
+            "--quiet", *TINY, *extra)
+
+
+def test_a_failed_start_does_not_poison_the_run_folder(data, tmp_path):
+    run = tmp_path / "r"
+    bad = _run(*_fit_args(data, run, "--max-steps", "2", "--set", "data.batch_size=0"), check=False)
+    assert bad.returncode == 1 and "data.batch_size: expected at least 1" in bad.stderr and not run.exists()
+    intr, photos = data
+    missing = _run("fit", "--config", "cpu-small", "--intrinsics", str(tmp_path / "nope"), "--real", str(photos),
+                   "--run-dir", str(run), "--max-steps", "2", "--quiet", *TINY, check=False)
+    assert missing.returncode == 1 and "no such dataset directory" in missing.stderr and "Traceback" not in missing.stderr
+    assert not (run / "training_options.json").exists()
+    # a start that wrote its options but never reached a checkpoint takes a corrected config
+    run.mkdir()
+    (run / "training_options.json").write_text(json.dumps({"config": tiny_cfg().to_dict(), "intrinsics": str(intr),
+                                                           "real": str(photos)}))
+    _run(*_fit_args(data, run, "--max-steps", "2", "--set", "optim.lr=1e-3"))
+    assert json.loads((run / "training_options.json").read_text())["config"]["optim"]["lr"] == 1e-3
+
+
+def test_resume_survives_torn_stats_and_truncated_checkpoints(data, tmp_path):
+    run = tmp_path / "r"
+    _run(*_fit_args(data, run, "--max-steps", "6"))  # checkpoints at steps 3 and 6
+    ckpts = run / "checkpoints"
+    with open(run / "stats.jsonl", "a") as fh:
+        fh.write('{"step": 7, "G/tot')  # a torn last line
+    (ckpts / "latest.json").write_text('{"step": 6, "na')
+    newest = ckpts / "step_00000006.safetensors"
+    newest.write_bytes(newest.read_bytes()[:1000])  # truncated by a crash or a full disk
+    proc = _run("fit", "--run-dir", str(run), "--max-steps", "8", "--quiet")
+    assert "skipped an unreadable checkpoint" in proc.stderr and "step_00000006.safetensors" in proc.stderr
+    assert "step 8 (5 steps" in proc.stdout  # resumed from step 3
+    steps = [r["step"] for r in _stats(run)]
+    assert steps == list(range(1, 9))
+    (run / "training_options.json").write_text('{"config": {"da')
+    broken = _run("fit", "--run-dir", str(run), "--max-steps", "9", "--quiet", check=False)
+    assert broken.returncode == 1 and "training_options.json: truncated or corrupt" in broken.stderr
+    assert "Traceback" not in broken.stderr
+
+
+def test_sigterm_saves_a_checkpoint_and_the_run_resumes_from_it(data, tmp_path):
+    import signal
+    import time
+
+    run = tmp_path / "r"
+    cmd = [sys.executable, "-m", "train.cli", *_fit_args(data, run, "--max-steps", "100000", "--set",
+                                                          "run.checkpoint_every=100000")]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not ((run / "stats.jsonl").exists() and len(_stats(run)) >= 3):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM and "interrupted at step" in err and "Traceback" not in err
+    saved = sorted((run / "checkpoints").glob("step_*.safetensors"))
+    assert len(saved) == 1
+    step = int(saved[0].stem.split("_")[1])
+    assert step >= 3
+    again = _run("fit", "--run-dir", str(run), "--max-steps", str(step + 2), "--quiet")
+    assert f"step {step + 2} (2 steps" in again.stdout
+
+
+def test_set_without_config_and_a_non_empty_out_are_one_line_errors(data, tmp_path):
+    run = tmp_path / "r"
+    _run(*_fit_args(data, run, "--max-steps", "3"))
+    nocfg = _run("fit", "--run-dir", str(run), "--set", "optim.lr=1", check=False)
+    assert nocfg.returncode == 2 and "--set needs --config" in nocfg.stderr and "Traceback" not in nocfg.stderr
+    intr, photos = data
+    mine = tmp_path / "my_photos"
+    mine.mkdir()
+    (mine / "holiday.jpg").write_bytes(b"not touched")
+    for cmd in (("render", "--intrinsics", str(intr)), ("decompose", "--images", str(photos))):
+        proc = _run(cmd[0], "--run", str(run), *cmd[1:], "--out", str(mine), "--quiet", check=False)
+        assert proc.returncode == 1 and "is not an empty folder" in proc.stderr, proc.stderr
+    assert [p.name for p in mine.iterdir()] == ["holiday.jpg"]

@@ -54,12 +54,23 @@ def tiny_photos(root: Path, n: int = 4, size=(90, 60), seed: int = 1) -> Path:
     return root
 
 
-TINY = ["--set", "data.height=32", "--set", "data.width=64", "--set", "data.batch_size=2", "--set", "data.workers=0",
-        "--set", "model.r_ngf=8", "--set", "model.r_downsample=2", "--set", "model.r_blocks=1",
-        "--set", "model.h_ngf=8", "--set", "model.h_blocks=1", "--set", "model.d_ndf=8",
-        "--set", "run.log_every=1", "--set", "run.grid_every=5", "--set", "run.checkpoint_every=3",
-        "--set", "run.grid_samples=2"]
+_COMMON = ["data.height=32", "data.width=64", "data.batch_size=2", "data.workers=0", "run.log_every=1",
+           "run.grid_every=5", "run.checkpoint_every=3", "run.grid_samples=2"]
+_NETS = {  # tiny networks, each kind in its own config section
+    "iae": ["model.r_ngf=8", "model.r_downsample=2", "model.r_blocks=1", "model.h_ngf=8", "model.h_blocks=1",
+            "model.d_ndf=8"],
+    "cyclegan": ["cyclegan.ngf=8", "cyclegan.n_blocks=1", "cyclegan.ndf=8"],
+    "munit": ["munit.dim=8", "munit.n_res=1", "munit.mlp_dim=16", "munit.d_ndf=8", "munit.d_layers=2"],
+}
 
 
-def tiny_overrides() -> list[str]:
-    return [TINY[i + 1] for i in range(0, len(TINY), 2)]
+def tiny_overrides(kind: str = "iae") -> list[str]:
+    return _COMMON + _NETS[kind]
+
+
+def tiny_args(kind: str = "iae") -> list[str]:
+    """The same overrides as `--set` options of `iae-train fit`."""
+    return [a for item in tiny_overrides(kind) for a in ("--set", item)]
+
+
+TINY = tiny_args("iae")

@@ -3,7 +3,8 @@
 Both expose the Intrinsic Autoencoder's interface (forward_all, generator_loss,
 discriminator_loss, render, decompose, visuals) so they train, log, checkpoint, resume and
 run inference through the same loop and commands, and they reuse its building blocks:
-ResNet generators, PatchGAN discriminators, GAN losses and the data pipeline.
+ResNet generators, PatchGAN discriminators, GAN losses and the data pipeline. Each reads
+its own config section ([cyclegan], [munit]) with the reference implementation's defaults.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from torch import nn
 
 from .config import Config
 from .losses import discriminator_terms, finish_logs, gan_loss
-from .networks import MultiscaleDiscriminator, ResnetBlock, ResnetGenerator, norm_layer
+from .networks import MultiscaleDiscriminator, ResnetBlock, ResnetGenerator, init_weights, norm_layer
 
 
 class ImagePool(nn.Module):
@@ -54,14 +55,15 @@ class CycleGAN(nn.Module):
 
     def __init__(self, cfg: Config):
         super().__init__()
-        m, self.loss_cfg = cfg.model, cfg.loss
-        self.G_render = ResnetGenerator(9, 3, m.h_ngf, m.h_downsample, m.r_blocks, m.norm)
-        self.G_decomp = ResnetGenerator(3, 9, m.h_ngf, m.h_downsample, m.r_blocks, m.norm)
-        self.D_img = MultiscaleDiscriminator(3, m.d_ndf, 3, 1, m.norm)  # one scale: the 70x70 PatchGAN
-        self.D_intr = MultiscaleDiscriminator(9, m.d_ndf, 3, 1, m.norm)
+        c = self.cfg = cfg.cyclegan
+        self.G_render = ResnetGenerator(9, 3, c.ngf, c.n_down, c.n_blocks, c.norm)
+        self.G_decomp = ResnetGenerator(3, 9, c.ngf, c.n_down, c.n_blocks, c.norm)
+        self.D_img = MultiscaleDiscriminator(3, c.ndf, c.d_layers, 1, c.norm)  # one scale: the 70x70 PatchGAN
+        self.D_intr = MultiscaleDiscriminator(9, c.ndf, c.d_layers, 1, c.norm)
+        init_weights(self, "normal")  # the reference's init_type = normal, gain 0.02
         hw = (cfg.data.height, cfg.data.width)
-        self.pool_img = ImagePool(cfg.loss.cyclegan_pool, (3, *hw))
-        self.pool_intr = ImagePool(cfg.loss.cyclegan_pool, (9, *hw))
+        self.pool_img = ImagePool(c.pool, (3, *hw))
+        self.pool_intr = ImagePool(c.pool, (9, *hw))
 
     def generator_modules(self):
         return {"G_render": self.G_render, "G_decomp": self.G_decomp}
@@ -75,30 +77,30 @@ class CycleGAN(nn.Module):
     def decompose(self, img):
         return self.G_decomp(img)
 
-    def forward_all(self, m_s, i_r):
+    def forward_all(self, m_s, i_r, everything: bool = False):
         fake_I, fake_M = self.G_render(m_s), self.G_decomp(i_r)
         return {"M_s": m_s, "I_r": i_r, "fake_I": fake_I, "fake_M": fake_M,
                 "rec_M": self.G_decomp(fake_I), "rec_I": self.G_render(fake_M)}
 
     def generator_loss(self, out):
-        lc = self.loss_cfg
+        c = self.cfg
         logs = {
-            "G/adv_img": gan_loss(self.D_img(out["fake_I"]), True, lc.gan),
-            "G/adv_intr": gan_loss(self.D_intr(out["fake_M"]), True, lc.gan),
+            "G/adv_img": gan_loss(self.D_img(out["fake_I"]), True, c.gan),
+            "G/adv_intr": gan_loss(self.D_intr(out["fake_M"]), True, c.gan),
             "G/cycle_intr": F.l1_loss(out["rec_M"], out["M_s"]),
             "G/cycle_img": F.l1_loss(out["rec_I"], out["I_r"]),
         }
-        total = lc.w_adv * (logs["G/adv_img"] + logs["G/adv_intr"]) + lc.w_ren * logs["G/cycle_intr"] \
-            + lc.w_dec * logs["G/cycle_img"]
+        total = c.w_adv * (logs["G/adv_img"] + logs["G/adv_intr"]) \
+            + c.w_cycle * (logs["G/cycle_intr"] + logs["G/cycle_img"])
         return finish_logs(total, logs, "G")
 
     def discriminator_loss(self, out):
-        lc = self.loss_cfg
+        c = self.cfg
         logs = {}
         total = 0.0
         for name, d, real, fake, pool in (("D_img", self.D_img, out["I_r"], out["fake_I"], self.pool_img),
                                           ("D_intr", self.D_intr, out["M_s"], out["fake_M"], self.pool_intr)):
-            logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, pool.query(fake.detach()), lc.gan)
+            logs[f"D/{name}_real"], logs[f"D/{name}_fake"] = discriminator_terms(d, real, pool.query(fake.detach()), c.gan)
             total = total + 0.5 * (logs[f"D/{name}_real"] + logs[f"D/{name}_fake"])
         return finish_logs(total, logs, "D")
 
@@ -109,7 +111,10 @@ class CycleGAN(nn.Module):
 # ----------------------------------------------------------------------------- MUNIT
 
 class AdaptiveInstanceNorm2d(nn.Module):
-    """Instance norm whose scale and bias are set per sample from a style code."""
+    """Instance norm whose scale and bias are set per sample from a style code.
+
+    As in the reference, the MLP's outputs are the scale and bias themselves (no offset of 1).
+    """
 
     def __init__(self, channels: int):
         super().__init__()
@@ -123,15 +128,20 @@ class AdaptiveInstanceNorm2d(nn.Module):
 
 
 class LayerNorm2d(nn.Module):
-    """MUNIT's layer norm over (C, H, W) with a per-channel affine transform."""
+    """MUNIT's layer norm: per sample over (C, H, W), divided by the unbiased std plus eps,
+    then a per-channel affine transform whose scale starts uniform in [0, 1) (the reference's)."""
 
-    def __init__(self, channels: int):
+    def __init__(self, channels: int, eps: float = 1e-5):
         super().__init__()
-        self.gamma = nn.Parameter(torch.ones(channels))
+        self.eps = eps
+        self.gamma = nn.Parameter(torch.rand(channels))
         self.beta = nn.Parameter(torch.zeros(channels))
 
     def forward(self, x):
-        x = F.layer_norm(x, x.shape[1:], eps=1e-5)
+        flat = x.flatten(1)
+        mean = flat.mean(1).view(-1, 1, 1, 1)
+        std = flat.std(1).view(-1, 1, 1, 1)
+        x = (x - mean) / (std + self.eps)
         return x * self.gamma[None, :, None, None] + self.beta[None, :, None, None]
 
 
@@ -197,7 +207,7 @@ class MunitDecoder(nn.Module):
         k = 0
         for a in self.adains:
             a.bias = params[:, k:k + a.channels]
-            a.weight = 1 + params[:, k + a.channels:k + 2 * a.channels]
+            a.weight = params[:, k + a.channels:k + 2 * a.channels]
             k += 2 * a.channels
         x = content
         for block in self.res:
@@ -208,11 +218,37 @@ class MunitDecoder(nn.Module):
 class MunitAutoEncoder(nn.Module):
     def __init__(self, in_ch: int, cfg: Config):
         super().__init__()
-        m = cfg.model
-        self.content = ContentEncoder(in_ch, m.h_ngf, m.h_downsample, m.h_blocks)
-        self.style = StyleEncoder(in_ch, m.h_ngf, m.munit_style_dim)
-        self.decoder = MunitDecoder(self.content.out_dim, in_ch, m.h_downsample, m.h_blocks, m.munit_style_dim,
-                                    m.munit_mlp_dim)
+        m = cfg.munit
+        self.content = ContentEncoder(in_ch, m.dim, m.n_down, m.n_res)
+        self.style = StyleEncoder(in_ch, m.dim, m.style_dim, m.style_down)
+        self.decoder = MunitDecoder(self.content.out_dim, in_ch, m.n_down, m.n_res, m.style_dim, m.mlp_dim)
+
+
+class MunitDiscriminator(nn.Module):
+    """The reference's MsImageDis: per scale, a 4x4 stride-2 reflect-padded conv with LeakyReLU,
+    n_layers - 1 more doubling the width, then a 1x1 conv to one logit map; no norm. Scales
+    are 3x3 average pools (stride 2, padding 1, padding not counted)."""
+
+    def __init__(self, in_ch: int, ndf: int, n_layers: int, scales: int):
+        super().__init__()
+
+        def net() -> nn.Sequential:
+            layers, ch = [], in_ch
+            for i in range(n_layers):
+                nxt = ndf * 2 ** i
+                layers += [nn.ReflectionPad2d(1), nn.Conv2d(ch, nxt, 4, 2), nn.LeakyReLU(0.2, True)]
+                ch = nxt
+            return nn.Sequential(*layers, nn.Conv2d(ch, 1, 1))
+
+        self.nets = nn.ModuleList(net() for _ in range(scales))
+
+    def forward(self, x):
+        out = []
+        for i, net in enumerate(self.nets):
+            if i:
+                x = F.avg_pool2d(x, 3, stride=2, padding=1, count_include_pad=False)
+            out.append(net(x))
+        return out
 
 
 class MUNIT(nn.Module):
@@ -226,11 +262,15 @@ class MUNIT(nn.Module):
 
     def __init__(self, cfg: Config):
         super().__init__()
-        m, self.loss_cfg = cfg.model, cfg.loss
-        self.style_dim = m.munit_style_dim
+        m = self.cfg = cfg.munit
+        self.style_dim = m.style_dim
         self.gen_a, self.gen_b = MunitAutoEncoder(9, cfg), MunitAutoEncoder(3, cfg)
-        self.D_a = MultiscaleDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales, "none")
-        self.D_b = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, "none")
+        self.D_a = MunitDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales)
+        self.D_b = MunitDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales)
+        for gen in (self.gen_a, self.gen_b):
+            init_weights(gen, "kaiming")  # the reference's init: kaiming (generators) ...
+        for dis in (self.D_a, self.D_b):
+            init_weights(dis, "normal")  # ... and gaussian N(0, 0.02) (discriminators)
 
     def generator_modules(self):
         return {"gen_a": self.gen_a, "gen_b": self.gen_b}
@@ -249,7 +289,7 @@ class MUNIT(nn.Module):
         zero = torch.zeros(img.shape[0], self.style_dim, device=img.device, dtype=img.dtype)
         return self.gen_a.decoder(self.gen_b.content(img), zero)
 
-    def forward_all(self, m_s, i_r):
+    def forward_all(self, m_s, i_r, everything: bool = False):
         c_a, s_a_prime = self.gen_a.content(m_s), self.gen_a.style(m_s)
         c_b, s_b_prime = self.gen_b.content(i_r), self.gen_b.style(i_r)
         s_a, s_b = self._style(m_s.shape[0], m_s), self._style(i_r.shape[0], i_r)
@@ -261,7 +301,7 @@ class MUNIT(nn.Module):
         return out
 
     def generator_loss(self, out):
-        lc = self.loss_cfg
+        lc = self.cfg
         logs = {
             "G/recon_x_a": F.l1_loss(out["rec_M"], out["M_s"]),
             "G/recon_x_b": F.l1_loss(out["rec_I"], out["I_r"]),
@@ -273,18 +313,18 @@ class MUNIT(nn.Module):
             "G/adv_b": gan_loss(self.D_b(out["fake_I"]), True, lc.gan),
         }
         total = lc.w_adv * (logs["G/adv_a"] + logs["G/adv_b"]) \
-            + lc.munit_w_recon_x * (logs["G/recon_x_a"] + logs["G/recon_x_b"]) \
-            + lc.munit_w_recon_s * (logs["G/recon_s_a"] + logs["G/recon_s_b"]) \
-            + lc.munit_w_recon_c * (logs["G/recon_c_a"] + logs["G/recon_c_b"])
-        if lc.munit_w_cyc:
+            + lc.w_recon_x * (logs["G/recon_x_a"] + logs["G/recon_x_b"]) \
+            + lc.w_recon_s * (logs["G/recon_s_a"] + logs["G/recon_s_b"]) \
+            + lc.w_recon_c * (logs["G/recon_c_a"] + logs["G/recon_c_b"])
+        if lc.w_cyc:
             cyc_a = self.gen_a.decoder(out["c_a_recon"], self.gen_a.style(out["M_s"]))
             cyc_b = self.gen_b.decoder(out["c_b_recon"], self.gen_b.style(out["I_r"]))
             logs["G/cycle"] = F.l1_loss(cyc_a, out["M_s"]) + F.l1_loss(cyc_b, out["I_r"])
-            total = total + lc.munit_w_cyc * logs["G/cycle"]
+            total = total + lc.w_cyc * logs["G/cycle"]
         return finish_logs(total, logs, "G")
 
     def discriminator_loss(self, out):
-        lc = self.loss_cfg
+        lc = self.cfg
         logs = {}
         total = 0.0
         for name, d, real, fake in (("D_a", self.D_a, out["M_s"], out["fake_M"]), ("D_b", self.D_b, out["I_r"], out["fake_I"])):

@@ -1,8 +1,9 @@
 """Checkpoints: weights and optimiser tensors in safetensors, the rest in JSON.
 
-No pickle anywhere, so loading a checkpoint cannot execute code. A checkpoint exists only
-once `latest.json` names it: tensors and state are written to temporary names, renamed,
-then the pointer is replaced atomically.
+No pickle anywhere, so loading a checkpoint cannot execute code. Tensors and state are
+written to temporary names and renamed; `latest.json` (written last) names the newest for
+other tools. Resuming does not trust it alone: it takes the newest checkpoint whose files
+both read back whole, and says which newer ones it skipped and why.
 """
 from __future__ import annotations
 
@@ -14,11 +15,15 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from blender_gen.dataset import atomic_write_json
+from blender_gen.dataset import atomic_target, atomic_write_json
 
 
 class CheckpointError(ValueError):
     """A checkpoint is missing or does not fit the model; the message says which key."""
+
+
+class CheckpointUnreadable(CheckpointError):
+    """A checkpoint's files are truncated or corrupt (an older one may still be usable)."""
 
 
 def _optim_tensors(prefix: str, opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
@@ -53,9 +58,8 @@ def save_checkpoint(folder: Path, step: int, model: torch.nn.Module, optimizers:
     py_state = random.getstate()
     state["rng"] = {"python": [py_state[0], list(py_state[1]), py_state[2]],
                     "numpy": _np_state_to_json(np.random.get_state())}
-    tmp = folder / f".{name}.safetensors.tmp"
-    save_file(tensors, str(tmp))
-    tmp.replace(folder / f"{name}.safetensors")
+    with atomic_target(folder / f"{name}.safetensors") as tmp:
+        save_file(tensors, str(tmp))
     atomic_write_json(folder / f"{name}.json", state)
     atomic_write_json(folder / "latest.json", {"step": step, "name": name})
     ckpts = sorted(folder.glob("step_*.safetensors"))
@@ -69,23 +73,58 @@ def _np_state_to_json(st) -> list:
     return [st[0], st[1].tolist(), int(st[2]), int(st[3]), float(st[4])]
 
 
+def checkpoint_files(folder: Path) -> list[Path]:
+    """Checkpoints in a folder, newest first."""
+    return sorted(Path(folder).glob("step_*.safetensors"), reverse=True)
+
+
 def latest_checkpoint(folder: Path) -> Path | None:
-    ptr = folder / "latest.json"
-    if not ptr.exists():
-        return None
-    name = json.loads(ptr.read_text())["name"]
-    path = folder / f"{name}.safetensors"
-    if not path.exists():
-        raise CheckpointError(f"{ptr} names {path.name}, which is missing")
-    return path
+    """The newest checkpoint file (not yet checked to be readable); None if there is none."""
+    files = checkpoint_files(folder)
+    return files[0] if files else None
 
 
-def load_weights(path: Path, model: torch.nn.Module) -> dict[str, torch.Tensor]:
-    """Load model weights; a key or shape mismatch is an error that names the key."""
+def read_state(path: Path) -> dict:
+    """The JSON state beside a checkpoint's tensors."""
+    state_path = Path(path).with_suffix(".json")
     try:
-        tensors = load_file(str(path))
+        state = json.loads(state_path.read_text(encoding="utf-8"))
+        int(state["step"])
+        return state
+    except FileNotFoundError:
+        raise CheckpointUnreadable(f"{state_path}: missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise CheckpointUnreadable(f"{state_path}: truncated or corrupt ({exc})") from None
+
+
+def _load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(path))
     except Exception as exc:  # safetensors raises its own error types
-        raise CheckpointError(f"{path}: not a readable safetensors checkpoint ({exc})") from exc
+        raise CheckpointUnreadable(f"{path}: not a readable safetensors checkpoint ({exc})") from exc
+
+
+def load_newest(folder: Path, model: torch.nn.Module, optimizers: dict | None = None,
+                schedulers: dict | None = None) -> tuple[dict | None, Path | None, list[str]]:
+    """Load the newest readable checkpoint: (state, path, reasons newer ones were skipped).
+
+    An unreadable checkpoint (truncated by a crash or a full disk) is skipped for the one
+    before it; one that does not fit the model is an error, since older ones would not fit either.
+    """
+    skipped = []
+    for path in checkpoint_files(folder):
+        try:
+            return load_checkpoint(path, model, optimizers or {}, schedulers or {}), path, skipped
+        except CheckpointUnreadable as exc:
+            skipped.append(str(exc))
+    return None, None, skipped
+
+
+def load_weights(path: Path, model: torch.nn.Module, tensors: dict[str, torch.Tensor] | None = None
+                 ) -> dict[str, torch.Tensor]:
+    """Load model weights; a key or shape mismatch is an error that names the key."""
+    if tensors is None:
+        tensors = _load_tensors(path)
     own = model.state_dict()
     weights = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
     missing = sorted(set(own) - set(weights))
@@ -101,8 +140,8 @@ def load_weights(path: Path, model: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 
 def load_checkpoint(path: Path, model: torch.nn.Module, optimizers: dict, schedulers: dict) -> dict:
-    tensors = load_weights(path, model)
-    state = json.loads(path.with_suffix(".json").read_text())
+    state = read_state(path)  # both files are read whole before anything is loaded into the model
+    tensors = load_weights(path, model, _load_tensors(path))
     for oname, opt in optimizers.items():
         _optim_load(f"optim.{oname}", opt, tensors, state["optimizers"][oname])
     for sname, sched in schedulers.items():

@@ -28,6 +28,8 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
+    """The Intrinsic Autoencoder's networks (model.kind = "iae"); baselines have their own sections."""
+
     kind: str = "iae"  # "iae" (the paper), "cyclegan", "munit"
     inputs: str = "NAF"  # which intrinsics R sees: any subset of N (normal), A (albedo), F (reflection)
     # R: pix2pixHD global generator (+ optional local enhancer)
@@ -45,29 +47,59 @@ class ModelConfig:
     d_layers: int = 3
     d_scales: int = 2
     norm: str = "instance"  # "instance" or "batch"
-    # MUNIT baseline
-    munit_style_dim: int = 8
-    munit_mlp_dim: int = 256
 
 
 @dataclass
 class LossConfig:
-    gan: str = "lsgan"  # "lsgan" (pix2pixHD/CycleGAN default) or "bce" (the paper's log formula)
+    """The Intrinsic Autoencoder's objective (Eq. 7: L_cyc + L_norm + L_adv)."""
+
+    gan: str = "bce"  # "bce" (the paper's log formula) or "lsgan" (pix2pixHD/CycleGAN practice)
     shared_discriminator: bool = True  # ablation: off = D_I sees only R(M_s), D_M only H(I_r)
-    rendering_cycle: bool = True  # ablation: off = no H(R(M_s)) and no L_ren
-    decomposition_cycle: bool = True  # ablation: off = no R(H(I_r)) and no L_dec
-    w_ren: float = 10.0  # cycle weights: CycleGAN's lambda = 10
-    w_dec: float = 10.0
+    rendering_cycle: bool = True  # ablation: off = no M_s -> R -> H cycle: no synthetic intrinsics reach R or H
+    decomposition_cycle: bool = True  # ablation: off = no I_r -> H -> R cycle: no real image reaches R or H
+    w_ren: float = 1.0  # Eq. 7 sums the terms without weights
+    w_dec: float = 1.0
     w_norm: float = 1.0
     w_adv: float = 1.0
     smooth_l1_beta: float = 1.0 / 16  # Smooth-L1 threshold in network units ([-1, 1])
     normal_threshold: float = 0.5  # the length loss applies where |n| > this (not on background)
-    # baselines
-    cyclegan_pool: int = 50
-    munit_w_recon_x: float = 10.0
-    munit_w_recon_s: float = 1.0
-    munit_w_recon_c: float = 1.0
-    munit_w_cyc: float = 0.0
+
+
+@dataclass
+class CycleGANConfig:
+    """The CycleGAN baseline (model.kind = "cyclegan"): the reference implementation's defaults."""
+
+    ngf: int = 64
+    n_down: int = 2
+    n_blocks: int = 9  # resnet_9blocks (256 px)
+    ndf: int = 64
+    d_layers: int = 3  # the 70x70 PatchGAN
+    norm: str = "instance"
+    gan: str = "lsgan"
+    w_cycle: float = 10.0  # lambda_A = lambda_B = 10
+    w_adv: float = 1.0
+    pool: int = 50
+
+
+@dataclass
+class MunitConfig:
+    """The MUNIT baseline (model.kind = "munit"): the reference edges2shoes configuration."""
+
+    dim: int = 64
+    n_down: int = 2
+    n_res: int = 4
+    style_dim: int = 8
+    mlp_dim: int = 256
+    style_down: int = 4
+    d_ndf: int = 64
+    d_layers: int = 4
+    d_scales: int = 3
+    gan: str = "lsgan"
+    w_adv: float = 1.0
+    w_recon_x: float = 10.0
+    w_recon_s: float = 1.0
+    w_recon_c: float = 1.0
+    w_cyc: float = 0.0
 
 
 @dataclass
@@ -75,8 +107,12 @@ class OptimConfig:
     lr: float = 2e-4  # the paper
     beta1: float = 0.5  # pix2pixHD / CycleGAN
     beta2: float = 0.999
-    decay_start: int = 100_000  # constant lr until this step, then linear decay to 0 at max_steps
+    weight_decay: float = 0.0  # MUNIT's reference uses 1e-4
+    lr_policy: str = "linear"  # "linear": constant until decay_start, then linear to 0; "step": x step_gamma every step_size
+    decay_start: int = 100_000
     max_steps: int = 200_000
+    step_size: int = 100_000  # lr_policy = "step" (MUNIT)
+    step_gamma: float = 0.5
 
 
 @dataclass
@@ -96,12 +132,18 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    cyclegan: CycleGANConfig = field(default_factory=CycleGANConfig)
+    munit: MunitConfig = field(default_factory=MunitConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     run: RunConfig = field(default_factory=RunConfig)
     name: str = "paper"
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+# The sections each model kind reads; a changed value anywhere else would be ignored, so it is refused.
+KIND_SECTIONS = {"iae": ("model", "loss"), "cyclegan": ("cyclegan",), "munit": ("munit",)}
 
 
 class ConfigError(ValueError):
@@ -171,27 +213,85 @@ def apply_dict(cfg: Config, data: dict, prefix: str = "", source: str = "config"
     return cfg
 
 
+def _choice(key: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key}: expected one of {list(allowed)}, got {value!r}")
+
+
+def _at_least(cfg: Config, minimum: float, *keys: str) -> None:
+    for key in keys:
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        if value < minimum:
+            raise ConfigError(f"{key}: expected at least {minimum:g}, got {value!r}")
+
+
+def _ignored_settings(cfg: Config) -> list[str]:
+    """Keys that differ from their defaults in sections this model kind never reads."""
+    defaults, used = Config(), KIND_SECTIONS[cfg.model.kind]
+    out = []
+    for section in ("model", "loss", "cyclegan", "munit"):
+        if section in used:
+            continue
+        for f in fields(getattr(cfg, section)):
+            if section == "model" and f.name == "kind":
+                continue
+            if getattr(getattr(cfg, section), f.name) != getattr(getattr(defaults, section), f.name):
+                out.append(f"{section}.{f.name}")
+    return out
+
+
 def validate(cfg: Config) -> Config:
-    m, lo = cfg.model, cfg.loss
-    if m.kind not in ("iae", "cyclegan", "munit"):
-        raise ConfigError(f"model.kind: expected 'iae', 'cyclegan' or 'munit', got {m.kind!r}")
+    """Every value in range and every setting read by the chosen model kind; checked before any file is written."""
+    m, lo, o = cfg.model, cfg.loss, cfg.optim
+    _choice("model.kind", m.kind, tuple(KIND_SECTIONS))
+    ignored = _ignored_settings(cfg)
+    if ignored:
+        own = ", ".join(f"[{s}]" for s in KIND_SECTIONS[m.kind])
+        raise ConfigError(f"{ignored[0]} does not apply to model.kind = {m.kind!r} (its settings are in {own}); "
+                          f"remove it" + (f" and {len(ignored) - 1} more" if len(ignored) > 1 else ""))
     if not m.inputs or set(m.inputs) - set("NAF") or len(set(m.inputs)) != len(m.inputs):
         raise ConfigError(f"model.inputs: expected a non-empty subset of 'NAF', got {m.inputs!r}")
-    if lo.gan not in ("lsgan", "bce"):
-        raise ConfigError(f"loss.gan: expected 'lsgan' or 'bce', got {lo.gan!r}")
-    if m.normal_output not in ("tanh", "normalize"):
-        raise ConfigError(f"model.normal_output: expected 'tanh' or 'normalize', got {m.normal_output!r}")
-    if m.norm not in ("instance", "batch"):
-        raise ConfigError(f"model.norm: expected 'instance' or 'batch', got {m.norm!r}")
-    div = 2 ** (m.r_downsample + m.r_local_enhancers)
+    _choice("loss.gan", lo.gan, ("bce", "lsgan"))
+    _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
+    _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
+    _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
+    _choice("model.norm", m.norm, ("instance", "batch"))
+    _choice("cyclegan.norm", cfg.cyclegan.norm, ("instance", "batch"))
+    _choice("optim.lr_policy", o.lr_policy, ("linear", "step"))
+    for key in ("amp", "channels_last"):
+        _choice(f"run.{key}", getattr(cfg.run, key), ("auto", "on", "off"))
+    _at_least(cfg, 8, "data.height", "data.width")
+    _at_least(cfg, 1, "data.batch_size", "model.r_ngf", "model.h_ngf", "model.d_ndf", "model.d_layers",
+              "model.d_scales", "cyclegan.ngf", "cyclegan.ndf", "cyclegan.d_layers", "munit.dim", "munit.style_dim",
+              "munit.mlp_dim", "munit.d_ndf", "munit.d_layers", "munit.d_scales", "optim.max_steps",
+              "optim.step_size", "run.log_every", "run.grid_every", "run.checkpoint_every", "run.keep_checkpoints",
+              "run.grid_samples")
+    _at_least(cfg, 0, "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
+              "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
+              "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.normal_threshold",
+              "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
+              "munit.w_recon_c", "munit.w_cyc")
+    if not (0 < o.lr <= 1):
+        raise ConfigError(f"optim.lr: expected a learning rate in (0, 1], got {o.lr!r}")
+    for key in ("beta1", "beta2"):
+        if not 0 <= getattr(o, key) < 1:
+            raise ConfigError(f"optim.{key}: expected a value in [0, 1), got {getattr(o, key)!r}")
+    if not 0 < o.step_gamma <= 1:
+        raise ConfigError(f"optim.step_gamma: expected a value in (0, 1], got {o.step_gamma!r}")
+    if not lo.smooth_l1_beta > 0:
+        raise ConfigError(f"loss.smooth_l1_beta: expected a positive number, got {lo.smooth_l1_beta!r}")
+    div = {"iae": 2 ** (m.r_downsample + m.r_local_enhancers), "cyclegan": 2 ** cfg.cyclegan.n_down,
+           "munit": 2 ** cfg.munit.n_down}[m.kind]
     if cfg.data.height % div or cfg.data.width % div:
         raise ConfigError(f"data.height/width ({cfg.data.height}x{cfg.data.width}) must be multiples of {div} "
-                          "(2^(r_downsample + r_local_enhancers))")
+                          f"(the networks of model.kind = {m.kind!r} downsample by that much)")
     if not (lo.rendering_cycle or lo.decomposition_cycle):
         raise ConfigError("loss.rendering_cycle and loss.decomposition_cycle cannot both be off")
-    for key in ("amp", "channels_last"):
-        if getattr(cfg.run, key) not in ("auto", "on", "off"):
-            raise ConfigError(f"run.{key}: expected 'auto', 'on' or 'off'")
+    if not lo.shared_discriminator and not (lo.rendering_cycle and lo.decomposition_cycle):
+        raise ConfigError("loss.shared_discriminator = false needs both cycles: with one cycle off, one "
+                          "discriminator would see no fake at all")
     return cfg
 
 
@@ -206,7 +306,9 @@ def load_config(name_or_file: str, overrides: list[str] | None = None) -> Config
     elif not path.exists():
         raise ConfigError(f"--config {name_or_file}: no such file")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); expected a TOML config") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     cfg = Config(name=path.stem)

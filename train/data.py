@@ -30,6 +30,21 @@ def _resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return F.interpolate(t[None], size=(h, w), mode=mode, **kw)[0]
 
 
+def cover_crop(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Scale (C, H, W) to cover h x w, keeping its aspect ratio, then cut out the centre.
+
+    The one way an image becomes training size: photos, PBR renders and (for FID) generated
+    images all pass through it, so an aspect ratio never changes a comparison by itself.
+    """
+    H, W = t.shape[1:]
+    if (H, W) == (h, w):
+        return t
+    scale = max(h / H, w / W)
+    t = _resize(t, max(h, round(H * scale)), max(w, round(W * scale)))
+    top, left = (t.shape[1] - h) // 2, (t.shape[2] - w) // 2
+    return t[:, top:top + h, left:left + w].contiguous()
+
+
 def flip_stack(m: torch.Tensor) -> torch.Tensor:
     """Mirror a 9-channel stack left-right; the normal's X component changes sign."""
     m = torch.flip(m, dims=[-1])
@@ -53,14 +68,14 @@ class IntrinsicsData(Dataset):
         index, flip = item
         layers = self.ds.load(index, INTRINSIC_LAYERS)
         stack = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], axis=-1)
-        m = _resize(torch.from_numpy(stack).permute(2, 0, 1).contiguous(), self.h, self.w)
+        m = cover_crop(torch.from_numpy(stack).permute(2, 0, 1).contiguous(), self.h, self.w)
         return flip_stack(m) if flip else m
 
 
 class RealImages(Dataset):
     """I_r from a PBR dataset (its `rgb` layer) or a folder of JPG/PNG photos -> (3, H, W).
 
-    Photos are scaled to cover the training size and centre-cropped (aspect 1:2 by default).
+    Both are scaled to cover the training size and centre-cropped (`cover_crop`).
     """
 
     def __init__(self, root: Path, height: int, width: int):
@@ -90,20 +105,15 @@ class RealImages(Dataset):
             img = Image.open(path).convert("RGB")
         except OSError as exc:
             raise DatasetError(f"{path}: cannot read image ({exc})") from exc
-        scale = max(self.w / img.width, self.h / img.height)
-        size = (max(self.w, round(img.width * scale)), max(self.h, round(img.height * scale)))
-        img = img.resize(size, Image.Resampling.BICUBIC)
-        left, top = (img.width - self.w) // 2, (img.height - self.h) // 2
-        img = img.crop((left, top, left + self.w, top + self.h))
         return np.asarray(img, dtype=np.float32) / 127.5 - 1.0  # photos are already sRGB-encoded
 
     def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
         index, flip = item
         if self.ds is not None:
             arr = to_network("rgb", self.ds.load(index, ["rgb"])["rgb"])
-            t = _resize(torch.from_numpy(arr).permute(2, 0, 1).contiguous(), self.h, self.w)
         else:
-            t = torch.from_numpy(self.load_photo(self.files[index])).permute(2, 0, 1).contiguous()
+            arr = self.load_photo(self.files[index])
+        t = cover_crop(torch.from_numpy(arr).permute(2, 0, 1).contiguous(), self.h, self.w)
         return torch.flip(t, dims=[-1]) if flip else t
 
 

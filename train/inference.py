@@ -2,43 +2,65 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from tqdm import tqdm
 
 from blender_gen.conversions import from_network, preview_srgb8
-from blender_gen.dataset import (INTRINSIC_LAYERS, append_manifest, atomic_write_json, sample_filename,
-                                 sha256_file, write_exr)
-from .checkpoint import CheckpointError, latest_checkpoint, load_weights
+from blender_gen.dataset import (FORMAT_VERSION, INTRINSIC_LAYERS, DatasetError, append_manifest, atomic_write_json,
+                                 folder_is_empty, sample_filename, save_png, sha256_file, write_exr)
+from .checkpoint import CheckpointError, load_newest, load_weights, read_state
 from .config import Config, config_from_dict
 from .data import IntrinsicsData, RealImages
 from .loop import _save_png, to_display
 from .model import build_model
 
 
+def load_run_options(run_dir: Path) -> tuple[dict, Config]:
+    """training_options.json of a run folder and its config, or a one-line error."""
+    opts_path = Path(run_dir) / "training_options.json"
+    if not opts_path.exists():
+        raise CheckpointError(f"--run {run_dir}: not a run folder (no training_options.json)")
+    try:
+        opts = json.loads(opts_path.read_text(encoding="utf-8"))
+        return opts, config_from_dict(opts["config"])
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"{opts_path}: unreadable or incomplete ({exc})") from None
+
+
 def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None) -> tuple[Config, torch.nn.Module, int]:
     """Config and weights of a run folder (the newest checkpoint unless one is named)."""
     run_dir = Path(run_dir)
-    opts_path = run_dir / "training_options.json"
-    if not opts_path.exists():
-        raise CheckpointError(f"--run {run_dir}: not a run folder (no training_options.json)")
-    cfg = config_from_dict(json.loads(opts_path.read_text())["config"])
-    path = Path(checkpoint) if checkpoint else latest_checkpoint(run_dir / "checkpoints")
-    if path is None or not path.exists():
-        raise CheckpointError(f"--run {run_dir}: no checkpoint yet (train it with `iae-train fit` first)")
+    _, cfg = load_run_options(run_dir)
     model = build_model(cfg)
-    load_weights(path, model)
-    step = json.loads(path.with_suffix(".json").read_text())["step"]
-    return cfg, model.to(device).eval(), step
+    if checkpoint:
+        state = read_state(Path(checkpoint))
+        load_weights(Path(checkpoint), model)
+    else:
+        state, path, skipped = load_newest(run_dir / "checkpoints", model)
+        for why in skipped:
+            print(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
+        if state is None:
+            raise CheckpointError(f"--run {run_dir}: no readable checkpoint yet (train it with `iae-train fit` first)")
+    return cfg, model.to(device).eval(), int(state["step"])
 
 
 def _srgb_png(path: Path, t: torch.Tensor) -> None:
     """R's output is sRGB-encoded network space: write it as it is."""
     _save_png(path, to_display(t))
+
+
+def fresh_output(out: Path) -> Path:
+    """An output folder that is new or empty: results never mix with files already there."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or not folder_is_empty(out)):
+        raise DatasetError(f"--out {out}: exists and is not an empty folder; choose a new folder")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 @torch.no_grad()
@@ -47,9 +69,8 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
     """R applied to every sample of an intrinsics dataset: one sRGB PNG per sample."""
     cfg, model, _ = load_run(run_dir, device)
     data = IntrinsicsData(intrinsics, cfg.data.height, cfg.data.width)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     n = len(data) if limit is None else min(limit, len(data))
+    out = fresh_output(out)
     gen = torch.Generator().manual_seed(style_seed)
     written = []
     for start in tqdm(range(0, n, batch), desc="render", unit="batch", disable=not progress):
@@ -73,19 +94,20 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
     """
     cfg, model, step = load_run(run_dir, device)
     reals = RealImages(images, cfg.data.height, cfg.data.width)
-    out = Path(out)
-    if (out / "manifest.jsonl").exists():
-        raise FileExistsError(f"--out {out}: already holds predictions; choose another folder")
+    n = len(reals) if limit is None else min(limit, len(reals))
+    out = fresh_output(out)
     (out / "samples").mkdir(parents=True, exist_ok=True)
     (out / "previews").mkdir(exist_ok=True)
     if reals.ds is not None:
         src_w, src_h = reals.ds.resolution
     else:
         src_w, src_h = cfg.data.width, cfg.data.height
-    n = len(reals) if limit is None else min(limit, len(reals))
-    info = {"kind": "predictions", "resolution": [src_w, src_h], "count": 0, "complete": False,
-            "source": str(Path(images).resolve()), "run": str(Path(run_dir).resolve()), "step": step,
-            "model": cfg.model.kind, "config_name": cfg.name, "layers": list(INTRINSIC_LAYERS)}
+    # provenance: the scorer refuses predictions of another source set (recipe, and each image's checksum)
+    info = {"format_version": FORMAT_VERSION, "kind": "predictions", "resolution": [src_w, src_h], "count": 0,
+            "count_requested": n, "complete": False, "source": str(Path(images).resolve()),
+            "source_recipe": reals.ds.info.get("recipe") if reals.ds is not None else None, "limit": limit,
+            "run": str(Path(run_dir).resolve()), "step": step, "model": cfg.model.kind, "config_name": cfg.name,
+            "layers": list(INTRINSIC_LAYERS)}
     atomic_write_json(out / "dataset.json", info)
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
@@ -100,9 +122,11 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
             rel = sample_filename(index)
             write_exr(out / rel, layers)
             preview = np.concatenate([preview_srgb8(k, layers[k]) for k in INTRINSIC_LAYERS], axis=1)
-            Image.fromarray(preview).save(out / "previews" / f"{index:06d}.png")
-            append_manifest(out / "manifest.jsonl", {"index": index, "file": rel, "sha256": sha256_file(out / rel),
-                                                     "source": reals.source_name(i)})
+            save_png(out / "previews" / f"{index:06d}.png", preview)
+            row = {"index": index, "file": rel, "sha256": sha256_file(out / rel), "source": reals.source_name(i)}
+            if reals.ds is not None:
+                row["source_sha256"] = reals.ds.rows[i]["sha256"]
+            append_manifest(out / "manifest.jsonl", row)
     info["count"], info["complete"] = n, True
     atomic_write_json(out / "dataset.json", info)
     return out

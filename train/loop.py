@@ -14,19 +14,20 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
 import torch.distributed as dist
-from PIL import Image
 from tqdm import tqdm
 
-from blender_gen.dataset import atomic_write_json
-from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from blender_gen.dataset import atomic_write_bytes, atomic_write_json, save_png
+from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict
 from .data import IntrinsicsData, RealImages, StepSampler, infinite_loader
 from .model import build_model
@@ -96,12 +97,17 @@ def discriminator_step(model, opt_d, d_params, out, autocast=nullcontext, world:
     return d_logs
 
 
-def _lr_lambda(decay_start: int, max_steps: int):
-    def f(step: int) -> float:
-        if step < decay_start:
+def lr_factor(optim) -> Callable[[int], float]:
+    """The learning-rate multiplier at a step: "linear" (pix2pixHD/CycleGAN: constant, then
+    linear to 0 at max_steps) or "step" (MUNIT: times step_gamma every step_size steps)."""
+    if optim.lr_policy == "step":
+        return lambda step: optim.step_gamma ** (step // optim.step_size)
+
+    def linear(step: int) -> float:
+        if step < optim.decay_start:
             return 1.0
-        return max(0.0, 1.0 - (step - decay_start) / max(1, max_steps - decay_start))
-    return f
+        return max(0.0, 1.0 - (step - optim.decay_start) / max(1, optim.max_steps - optim.decay_start))
+    return linear
 
 
 def to_display(t: torch.Tensor) -> np.ndarray:
@@ -135,40 +141,161 @@ def sample_grid(vis: dict[str, torch.Tensor]) -> np.ndarray:
 
 def _save_png(path: Path, img: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    Image.fromarray(img).save(tmp, format="PNG")
-    tmp.replace(path)
+    save_png(path, img)
 
 
 def _resolve(flag: str, device: str) -> bool:
     return flag == "on" or (flag == "auto" and device.startswith("cuda"))
 
 
+def read_options(run_dir: Path) -> dict:
+    """training_options.json of a run, or a one-line error naming it."""
+    path = Path(run_dir) / "training_options.json"
+    try:
+        opts = json.loads(path.read_text(encoding="utf-8"))
+        opts["config"], opts["intrinsics"], opts["real"]  # noqa: B018  (all three must be there)
+        return opts
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{path}: truncated or corrupt ({exc}); remove the run folder or restore the file") from None
+
+
 def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None) -> tuple[Config, dict]:
-    """New run: write training_options.json. Existing run: read it (the run resumes)."""
+    """New run: check the data, then write training_options.json. Existing run: read it (the run resumes).
+
+    Everything is validated before the folder is written, so a failed start never leaves a
+    folder that refuses the corrected command. A folder whose run has no checkpoint yet holds
+    nothing to resume and takes a new config.
+    """
     opts_path = run_dir / "training_options.json"
     if opts_path.exists():
-        opts = json.loads(opts_path.read_text())
+        opts = read_options(run_dir)
         saved = config_from_dict(opts["config"])
-        if cfg is not None and cfg.to_dict() != saved.to_dict():
-            diff = [k for k in cfg.to_dict() if cfg.to_dict()[k] != saved.to_dict()[k]]
-            raise ConfigError(f"--run-dir {run_dir} holds a run with another config (section(s) {diff} differ); "
-                              "resume it without --config/--set changes or choose a new --run-dir")
-        for key, given in (("intrinsics", intrinsics), ("real", real)):
-            if given and str(Path(given).resolve()) != opts[key]:
-                raise ConfigError(f"--{key} {given}: the run in {run_dir} was trained on {opts[key]}")
-        return saved, opts
+        started = latest_checkpoint(run_dir / "checkpoints") is not None
+        changed = cfg is not None and cfg.to_dict() != saved.to_dict()
+        moved = [k for k, given in (("intrinsics", intrinsics), ("real", real))
+                 if given and str(Path(given).resolve()) != opts[k]]
+        if started or not (changed or moved):
+            if changed:
+                diff = [k for k in cfg.to_dict() if cfg.to_dict()[k] != saved.to_dict()[k]]
+                raise ConfigError(f"--run-dir {run_dir} holds a run with another config (section(s) {diff} differ); "
+                                  "resume it without --config/--set changes or choose a new --run-dir")
+            if moved:
+                raise ConfigError(f"--{moved[0]} {intrinsics if moved[0] == 'intrinsics' else real}: the run in "
+                                  f"{run_dir} was trained on {opts[moved[0]]}")
+            check_data(saved, opts["intrinsics"], opts["real"])
+            return saved, opts
+        cfg = cfg or saved
+        intrinsics, real = intrinsics or opts["intrinsics"], real or opts["real"]
     if cfg is None or not intrinsics or not real:
         raise ConfigError(f"--run-dir {run_dir}: no run there to resume; a new run needs --config, --intrinsics, --real")
+    check_data(cfg, intrinsics, real)
     opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve())}
     run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "stats.jsonl").unlink(missing_ok=True)  # from a start that never reached a checkpoint
     atomic_write_json(opts_path, opts)
     return cfg, opts
 
 
+def check_data(cfg: Config, intrinsics: str, real: str) -> None:
+    """Open both datasets (DatasetError names the one that is missing or malformed)."""
+    IntrinsicsData(Path(intrinsics), cfg.data.height, cfg.data.width)
+    RealImages(Path(real), cfg.data.height, cfg.data.width)
+
+
+class StopRequest:
+    """Ctrl-C or SIGTERM asks training to stop after the current step, with a checkpoint.
+
+    A second Ctrl-C interrupts at once (KeyboardInterrupt), as usual.
+    """
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> "StopRequest":
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.signal is not None and signum == 2:
+            raise KeyboardInterrupt
+        self.signal = signum
+
+    def __exit__(self, *exc) -> None:
+        import signal
+
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class Interrupted(Exception):
+    """Training stopped on a signal after saving a checkpoint; rerun the command to resume."""
+
+    def __init__(self, step: int, signum: int):
+        super().__init__(f"interrupted at step {step}: checkpoint saved; run the same command again to resume")
+        self.step, self.signum = step, signum
+
+
+def build_optimisation(cfg: Config, model) -> tuple[list, list, dict, dict]:
+    """Parameters of both groups, their Adam optimisers and learning-rate schedules."""
+    g_params = [p for m in model.generator_modules().values() for p in m.parameters()]
+    d_params = [p for m in model.discriminator_modules().values() for p in m.parameters()]
+    adam = {"lr": cfg.optim.lr, "betas": (cfg.optim.beta1, cfg.optim.beta2), "weight_decay": cfg.optim.weight_decay}
+    optimizers = {"G": torch.optim.Adam(g_params, **adam), "D": torch.optim.Adam(d_params, **adam)}
+    lam = lr_factor(cfg.optim)
+    schedulers = {k: torch.optim.lr_scheduler.LambdaLR(o, lam) for k, o in optimizers.items()}
+    return g_params, d_params, optimizers, schedulers
+
+
+class StatsLog:
+    """stats.jsonl and TensorBoard scalars of the main process; rows after `start` are dropped on resume."""
+
+    def __init__(self, run_dir: Path, start: int, enabled: bool):
+        self.path, self.writer = run_dir / "stats.jsonl", None
+        if not enabled:
+            return
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(str(run_dir), purge_step=start)
+        if self.path.exists():
+            rows = []
+            for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+                try:
+                    row = json.loads(line)
+                except json.JSONDecodeError:
+                    continue  # a torn line from a killed run: its step is re-run anyway
+                if isinstance(row, dict) and isinstance(row.get("step"), int) and row["step"] <= start:
+                    rows.append(row)
+            atomic_write_json_lines(self.path, rows)
+
+    def log(self, step: int, lr: float, logs: dict) -> None:
+        if self.writer is None:
+            return
+        with open(self.path, "a") as fh:
+            fh.write(json.dumps({"step": step, "lr": lr, **logs}) + "\n")
+        for key, v in logs.items():
+            self.writer.add_scalar(key, v, step)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+
+def atomic_write_json_lines(path: Path, rows: list[dict]) -> None:
+    atomic_write_bytes(path, "".join(json.dumps(r) + "\n" for r in rows).encode())
+
+
 def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None, real: str | None = None,
         max_steps: int | None = None, device: str = "cpu", progress: bool = True) -> dict:
-    """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's)."""
+    """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's).
+
+    Ctrl-C or SIGTERM finishes the current step, saves a checkpoint and raises Interrupted.
+    """
     run_dir = Path(run_dir)
     dd = init_distributed(device)
     if device.startswith("cuda") and dd.world > 1:
@@ -184,32 +311,25 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     torch.manual_seed(cfg.run.seed)
     np.random.seed(cfg.run.seed)
 
+    # ---------------------------------------------------------------- model, optimisers, resume
     model = build_model(cfg).to(device)
-    g_params = [p for m in model.generator_modules().values() for p in m.parameters()]
-    d_params = [p for m in model.discriminator_modules().values() for p in m.parameters()]
-    betas = (cfg.optim.beta1, cfg.optim.beta2)
-    opt_g = torch.optim.Adam(g_params, lr=cfg.optim.lr, betas=betas)
-    opt_d = torch.optim.Adam(d_params, lr=cfg.optim.lr, betas=betas)
-    lam = _lr_lambda(cfg.optim.decay_start, cfg.optim.max_steps)
-    sched_g = torch.optim.lr_scheduler.LambdaLR(opt_g, lam)
-    sched_d = torch.optim.lr_scheduler.LambdaLR(opt_d, lam)
-    optimizers, schedulers = {"G": opt_g, "D": opt_d}, {"G": sched_g, "D": sched_d}
-
+    g_params, d_params, optimizers, schedulers = build_optimisation(cfg, model)
+    opt_g, opt_d = optimizers["G"], optimizers["D"]
     ckpt_dir = run_dir / "checkpoints"
-    start = 0
-    last = latest_checkpoint(ckpt_dir)
-    if last is not None:
-        start = load_checkpoint(last, model, optimizers, schedulers)["step"]
+    state, resumed_from, skipped = load_newest(ckpt_dir, model, optimizers, schedulers)
+    for why in skipped if dd.main else []:
+        tqdm.write(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
+    start = int(state["step"]) if state else 0
     if dd.world > 1:  # identical weights everywhere (a fresh run initialises per process)
         for p in model.state_dict().values():
             dist.broadcast(p, 0)
-
     channels_last = _resolve(cfg.run.channels_last, device)
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
     amp = _resolve(cfg.run.amp, device)
     autocast = (lambda: torch.autocast(device_type=device.split(":")[0], dtype=torch.bfloat16)) if amp else nullcontext
 
+    # ---------------------------------------------------------------- data
     h, w = cfg.data.height, cfg.data.width
     intr = IntrinsicsData(Path(opts["intrinsics"]), h, w)
     reals = RealImages(Path(opts["real"]), h, w)
@@ -222,60 +342,66 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     fixed_m = torch.stack([intr[(i, False)] for i in range(k)]).to(device)
     fixed_i = torch.stack([reals[(i, False)] for i in range(k)]).to(device)
 
-    writer = None
-    if dd.main:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(run_dir), purge_step=start)
-    stats_path = run_dir / "stats.jsonl"
-    if dd.main and stats_path.exists():  # drop rows logged after the checkpoint we resume from
-        rows = [r for r in map(json.loads, stats_path.read_text().splitlines()) if r["step"] <= start]
-        stats_path.write_text("".join(json.dumps(r) + "\n" for r in rows))
-
+    # ---------------------------------------------------------------- the step loop
+    stats = StatsLog(run_dir, start, dd.main)
     bar = tqdm(total=end, initial=start, unit="it", desc=run_dir.name, disable=not (progress and dd.main),
                dynamic_ncols=True)
+
+    def checkpoint(step: int) -> None:
+        if dd.main:
+            save_checkpoint(ckpt_dir, step, model, optimizers, schedulers, keep=cfg.run.keep_checkpoints)
+        if dd.world > 1:
+            dist.barrier()
+
     t_start = time.perf_counter()
     step = start
     last_logs: dict = {}
     try:
-        while step < end:
-            m_s = next(it_m).to(device, non_blocking=True)
-            i_r = next(it_i).to(device, non_blocking=True)
-            if channels_last:
-                m_s, i_r = m_s.contiguous(memory_format=torch.channels_last), i_r.contiguous(memory_format=torch.channels_last)
-            model.train()
-            out, g_logs = generator_step(model, opt_g, g_params, m_s, i_r, autocast, dd.world)
-            d_logs = discriminator_step(model, opt_d, d_params, out, autocast, dd.world)
-            sched_g.step()
-            sched_d.step()
-            step += 1
-            logs = {**g_logs, **d_logs}
-            bad = [k for k, v in logs.items() if not math.isfinite(v)]
-            if bad:
-                raise NonFiniteLoss(f"step {step}: non-finite loss {bad[0]}={logs[bad[0]]}; stopped, the last good "
-                                    f"checkpoint is {latest_checkpoint(ckpt_dir) or 'none (no checkpoint yet)'}")
-            last_logs = logs
-            bar.update()
-            bar.set_postfix({"G": f"{logs['G/total']:.3f}", "D": f"{logs['D/total']:.3f}"}, refresh=False)
-            if dd.main and (step % cfg.run.log_every == 0 or step == end):
-                row = {"step": step, "lr": sched_g.get_last_lr()[0], **logs}
-                with open(stats_path, "a") as fh:
-                    fh.write(json.dumps(row) + "\n")
-                for key, v in logs.items():
-                    writer.add_scalar(key, v, step)
-            if dd.main and (step % cfg.run.grid_every == 0 or step == end):
-                write_grid(model, fixed_m, fixed_i, run_dir / "grids" / f"step_{step:08d}.png", autocast)
-            if step % cfg.run.checkpoint_every == 0 or step == end:
-                if dd.main:
-                    save_checkpoint(ckpt_dir, step, model, optimizers, schedulers, keep=cfg.run.keep_checkpoints)
-                if dd.world > 1:
-                    dist.barrier()
+        with StopRequest() as stop:
+            while step < end:
+                m_s = next(it_m).to(device, non_blocking=True)
+                i_r = next(it_i).to(device, non_blocking=True)
+                if channels_last:
+                    m_s = m_s.contiguous(memory_format=torch.channels_last)
+                    i_r = i_r.contiguous(memory_format=torch.channels_last)
+                model.train()
+                out, g_logs = generator_step(model, opt_g, g_params, m_s, i_r, autocast, dd.world)
+                d_logs = discriminator_step(model, opt_d, d_params, out, autocast, dd.world)
+                for sched in schedulers.values():
+                    sched.step()
+                step += 1
+                logs = {**g_logs, **d_logs}
+                bad = [k for k, v in logs.items() if not math.isfinite(v)]
+                if bad:
+                    raise NonFiniteLoss(f"step {step}: non-finite loss {bad[0]}={logs[bad[0]]}; stopped, the last "
+                                        f"good checkpoint is {latest_checkpoint(ckpt_dir) or 'none (no checkpoint yet)'}")
+                last_logs = logs
+                bar.update()
+                bar.set_postfix({"G": f"{logs['G/total']:.3f}", "D": f"{logs['D/total']:.3f}"}, refresh=False)
+                if step % cfg.run.log_every == 0 or step == end:
+                    stats.log(step, schedulers["G"].get_last_lr()[0], logs)
+                if dd.main and (step % cfg.run.grid_every == 0 or step == end):
+                    write_grid(model, fixed_m, fixed_i, run_dir / "grids" / f"step_{step:08d}.png", autocast)
+                stopping = _any_rank(stop.signal is not None, dd.world, device)
+                if step % cfg.run.checkpoint_every == 0 or step == end or stopping:
+                    checkpoint(step)
+                if stopping and step < end:
+                    raise Interrupted(step, stop.signal or 15)
     finally:
         bar.close()
-        if writer is not None:
-            writer.close()
+        stats.close()
     seconds = time.perf_counter() - t_start
-    return {"step": step, "steps_run": step - start, "seconds": seconds, "last": last_logs}
+    return {"step": step, "steps_run": step - start, "seconds": seconds, "last": last_logs,
+            "resumed_from": str(resumed_from) if resumed_from else None}
+
+
+def _any_rank(flag: bool, world: int, device: str) -> bool:
+    """True on every process if it is true on any (a signal may reach ranks at different steps)."""
+    if world <= 1:
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t)
+    return bool(t.item() > 0)
 
 
 @torch.no_grad()
@@ -285,6 +411,6 @@ def write_grid(model, fixed_m: torch.Tensor, fixed_i: torch.Tensor, path: Path, 
     devices = [fixed_m.device] if fixed_m.is_cuda else []
     with torch.random.fork_rng(devices=devices), autocast():
         torch.manual_seed(0)
-        out = model.forward_all(fixed_m, fixed_i)
+        out = model.forward_all(fixed_m, fixed_i, everything=True)
     _save_png(path, sample_grid({k: v.float() for k, v in model.visuals(out).items()}))
     model.train()

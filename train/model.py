@@ -3,6 +3,9 @@
 R renders intrinsics to images, H decomposes images into intrinsics; two cycles
 (rendering M_s -> R -> H, decomposition I_r -> H -> R) and the *shared* adversarial
 losses: D_I sees R(M_s) and R(H(I_r)) as fakes, D_M sees H(I_r) and H(R(M_s)).
+The ablations switch a whole cycle off: without the decomposition cycle no real image
+reaches R or H (D_I compares I_r with R(M_s) only, D_M compares M_s with H(R(M_s))), and
+without the rendering cycle no synthetic intrinsics reach them (the mirror case).
 Each discriminator runs once per step on one concatenated batch (instance norm keeps
 samples independent), which keeps the multi-process gradient all-reduce simple.
 """
@@ -13,7 +16,7 @@ from torch import nn
 
 from .config import Config
 from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss
-from .networks import Decomposer, MultiscaleDiscriminator, make_renderer_net
+from .networks import Decomposer, MultiscaleDiscriminator, init_weights, make_renderer_net
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
 
@@ -28,6 +31,7 @@ class IntrinsicAutoencoder(nn.Module):
         self.D_I = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.D_M = MultiscaleDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.normal_output = m.normal_output
+        init_weights(self, "normal")  # pix2pixHD / CycleGAN: N(0, 0.02)
 
     # -------------------------------------------------------------- groups for optimisers
     def generator_modules(self) -> dict[str, nn.Module]:
@@ -48,21 +52,30 @@ class IntrinsicAutoencoder(nn.Module):
         return self.H(img)
 
     # -------------------------------------------------------------- training
-    def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor, everything: bool = False) -> dict[str, torch.Tensor]:
+        """The outputs the losses need; `everything` also computes those an ablation does not
+        train on (for pictures only: H(I_r) shows what an ablated H makes of real images)."""
         lc = self.loss_cfg
-        out = {"M_s": m_s, "I_r": i_r, "fake_I": self.render(m_s), "fake_M": self.H(i_r)}
-        if lc.rendering_cycle:
+        out = {"M_s": m_s, "I_r": i_r}
+        if lc.rendering_cycle or everything:
+            out["fake_I"] = self.render(m_s)  # R(M_s)
             out["rec_M"] = self.H(out["fake_I"])  # H(R(M_s))
-        if lc.decomposition_cycle:
+        if lc.decomposition_cycle or everything:
+            out["fake_M"] = self.H(i_r)  # H(I_r)
             out["rec_I"] = self.render(out["fake_M"])  # R(H(I_r))
         return out
 
     def discriminator_inputs(self, out: dict[str, torch.Tensor]) -> dict[str, tuple[torch.Tensor, list[str]]]:
-        """Which tensors each discriminator sees: (real, names of fakes)."""
-        shared = self.loss_cfg.shared_discriminator
-        fakes_i = ["fake_I"] + (["rec_I"] if shared and "rec_I" in out else [])
-        fakes_m = ["fake_M"] + (["rec_M"] if shared and "rec_M" in out else [])
-        return {"D_I": (out["I_r"], fakes_i), "D_M": (out["M_s"], fakes_m)}
+        """Which tensors each discriminator sees: (real, names of fakes).
+
+        Shared: every generated image (R(M_s), R(H(I_r))) is a fake for D_I and every generated
+        stack (H(I_r), H(R(M_s))) for D_M. Not shared: only the direct translations.
+        """
+        candidates = {"D_I": ("fake_I", "rec_I"), "D_M": ("fake_M", "rec_M")}
+        if not self.loss_cfg.shared_discriminator:
+            candidates = {"D_I": ("fake_I",), "D_M": ("fake_M",)}
+        reals = {"D_I": out["I_r"], "D_M": out["M_s"]}
+        return {d: (reals[d], [k for k in names if k in out]) for d, names in candidates.items()}
 
     def _disc(self, name: str) -> nn.Module:
         return self.D_I if name == "D_I" else self.D_M
@@ -70,7 +83,7 @@ class IntrinsicAutoencoder(nn.Module):
     def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         lc = self.loss_cfg
         logs: dict[str, torch.Tensor] = {}
-        total = out["fake_I"].new_zeros((), dtype=torch.float32)
+        total = out["M_s"].new_zeros((), dtype=torch.float32)
         if "rec_M" in out:
             logs["G/ren_cycle"] = cycle_loss(self.select(out["rec_M"]), self.select(out["M_s"]), lc.smooth_l1_beta)
             total = total + lc.w_ren * logs["G/ren_cycle"]
@@ -78,9 +91,8 @@ class IntrinsicAutoencoder(nn.Module):
             logs["G/dec_cycle"] = cycle_loss(out["rec_I"], out["I_r"], lc.smooth_l1_beta)
             total = total + lc.w_dec * logs["G/dec_cycle"]
         if self.normal_output == "tanh" and lc.w_norm:
-            norm = normal_length_loss(out["fake_M"][:, :3], lc.normal_threshold)
-            if "rec_M" in out:
-                norm = norm + normal_length_loss(out["rec_M"][:, :3], lc.normal_threshold)
+            # L_norm on H_N(I_r) and H_N(R(M_s)), whichever this configuration computes
+            norm = sum(normal_length_loss(out[k][:, :3], lc.normal_threshold) for k in ("fake_M", "rec_M") if k in out)
             logs["G/normal_length"] = norm
             total = total + lc.w_norm * norm
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
@@ -96,7 +108,7 @@ class IntrinsicAutoencoder(nn.Module):
         """Real vs the (detached) fakes; halved as in pix2pixHD so D learns at half G's pace."""
         lc = self.loss_cfg
         logs: dict[str, torch.Tensor] = {}
-        total = out["fake_I"].new_zeros((), dtype=torch.float32)
+        total = out["M_s"].new_zeros((), dtype=torch.float32)
         for dname, (real, fakes) in self.discriminator_inputs(out).items():
             batch = torch.cat([real] + [out[f].detach() for f in fakes])
             chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._disc(dname)(batch)]

@@ -10,6 +10,28 @@ import torch.nn.functional as F
 from torch import nn
 
 
+def init_weights(module: nn.Module, scheme: str = "normal") -> nn.Module:
+    """The references' initialisation, applied to every conv and linear layer of `module`.
+
+    "normal": N(0, 0.02) weights, zero biases, batch-norm scales N(1, 0.02) (pix2pixHD, CycleGAN,
+    and MUNIT's discriminators); "kaiming": He-normal fan-in weights, zero biases (MUNIT's generators).
+    """
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+            if scheme == "normal":
+                nn.init.normal_(m.weight, 0.0, 0.02)
+            elif scheme == "kaiming":
+                nn.init.kaiming_normal_(m.weight, a=0, mode="fan_in")
+            else:
+                raise ValueError(f"unknown init scheme {scheme!r}")
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.BatchNorm2d) and scheme == "normal":
+            nn.init.normal_(m.weight, 1.0, 0.02)
+            nn.init.zeros_(m.bias)
+    return module
+
+
 def norm_layer(kind: str, channels: int) -> nn.Module:
     if kind == "instance":
         return nn.InstanceNorm2d(channels, affine=False)

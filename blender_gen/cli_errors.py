@@ -1,0 +1,36 @@
+"""How the command lines report errors: expected ones in one line, bugs with their traceback.
+
+Bad input (a ValueError of ours: DatasetError, ConfigError, RulesError, ...) and failed
+I/O (OSError: disk full, read-only folder) are the user's to fix, so they print one line
+naming the file or option. Anything else is a bug and keeps its traceback. Set
+IAE_DEBUG=1 to see the traceback of an expected error too.
+"""
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from typing import Iterator
+
+import click
+
+DEBUG_ENV = "IAE_DEBUG"
+EXPECTED: tuple[type[BaseException], ...] = (ValueError, OSError)
+
+
+def first_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+@contextmanager
+def one_line_errors(expected: tuple[type[BaseException], ...] = EXPECTED) -> Iterator[None]:
+    try:
+        yield
+    except click.ClickException:
+        raise
+    except expected as exc:
+        if os.environ.get(DEBUG_ENV):
+            raise
+        raise click.ClickException(first_line(exc)) from None

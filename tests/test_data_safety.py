@@ -1,0 +1,217 @@
+"""Data safety: manifests cannot point outside their dataset, one writer per folder, workers
+die with their parent, and failed writes leave nothing half-written (issue: hardening)."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from blender_gen.dataset import (DatasetError, DatasetWriteError, atomic_write_bytes, locked_folder, open_dataset,
+                                 read_manifest, save_png, temp_name, write_exr)
+from tests.conftest import ROOT, run_gen
+from tests.train_helpers import tiny_intrinsics
+
+
+def _rows(root: Path) -> list[dict]:
+    return [json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines()]
+
+
+def _write_rows(root: Path, rows: list[dict]) -> None:
+    (root / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def _one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    assert proc.returncode != 0, proc.stdout
+    assert "Traceback" not in proc.stderr, proc.stderr
+    for n in needles:
+        assert n in proc.stderr, proc.stderr
+
+
+def test_merge_refuses_a_manifest_that_names_a_file_outside_its_folder(tmp_path):
+    shard = tiny_intrinsics(tmp_path / "shard", n=2)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("not yours")
+    rows = _rows(shard)
+    # a row that passes the old checks: the file exists and its checksum matches
+    rows.append({**rows[0], "index": 7, "file": "../victim.txt", "sha256": __import__("hashlib").sha256(
+        victim.read_bytes()).hexdigest()})
+    _write_rows(shard, rows)
+    out = tmp_path / "deep" / "merged"
+    proc = run_gen("merge", "--out", str(out), str(shard), "--quiet", check=False)
+    _one_line_error(proc, "'file' must be 'samples/000007.exr'", "corrupt")
+    assert not (tmp_path / "deep" / "victim.txt").exists()
+    assert not (out / "manifest.jsonl").exists()
+    assert victim.read_text() == "not yours"
+
+
+@pytest.mark.parametrize("bad", [
+    {"file": "/etc/passwd"},
+    {"file": "../other/samples/000001.exr"},
+    {"file": "samples/000001.exr"},  # another sample's file
+    {"sha256": None},
+    {"index": -1},
+    {"index": "0"},
+])
+def test_readers_refuse_rows_that_do_not_name_their_own_sample(tmp_path, bad):
+    root = tiny_intrinsics(tmp_path / "ds", n=2)
+    rows = _rows(root)
+    row = {**rows[0], **bad}
+    if bad.get("sha256", 1) is None:
+        del row["sha256"]
+    _write_rows(root, [row, rows[1]])
+    with pytest.raises(DatasetError, match="line 1: .*corrupt"):
+        open_dataset(root)
+    proc = run_gen("inspect", str(root), "--quiet", check=False)
+    _one_line_error(proc, "corrupt")
+    assert "complete" not in proc.stdout
+
+
+def test_duplicate_rows_count_once(tmp_path):
+    root = tiny_intrinsics(tmp_path / "ds", n=3)
+    rows = _rows(root)
+    _write_rows(root, rows + rows[:2])
+    assert [r["index"] for r in read_manifest(root / "manifest.jsonl")] == [2, 0, 1]
+    assert len(open_dataset(root)) == 3
+
+
+def test_a_second_writer_on_the_same_folder_fails_naming_the_holder(tmp_path):
+    out = tmp_path / "intr"
+    with locked_folder(out):
+        proc = run_gen("intrinsics", "--out", str(out), "--count", "2", "--resolution", "64x32", "--quiet", check=False)
+        merged = run_gen("merge", "--out", str(out), str(tmp_path), "--quiet", check=False)
+    _one_line_error(proc, f"is being written by pid {os.getpid()}")
+    _one_line_error(merged, "is being written by pid")
+    assert sorted(p.name for p in out.iterdir()) == [".lock"]
+
+
+def test_an_incomplete_merge_exits_nonzero(tmp_path):
+    root = tiny_intrinsics(tmp_path / "ds", n=3)
+    info = json.loads((root / "dataset.json").read_text())
+    (root / "dataset.json").write_text(json.dumps({**info, "count_requested": 5}))
+    proc = run_gen("merge", "--out", str(tmp_path / "m"), str(root), "--quiet", check=False)
+    _one_line_error(proc, "INCOMPLETE", "2 sample(s) missing")
+    assert len(open_dataset(tmp_path / "m")) == 3
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--count", "-1"], "Invalid value for '--count'"),
+    (["--count", "1000000000"], "Invalid value for '--count'"),
+    (["--count", "2", "--workers", "0"], "Invalid value for '--workers'"),
+    (["--count", "2", "--samples", "0"], "Invalid value for '--samples'"),
+])
+def test_ranges_are_checked_where_options_are_declared(tmp_path, args, message):
+    proc = run_gen("intrinsics", "--out", str(tmp_path / "x"), *args, check=False)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = [int(k) for k in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            out.update(kids)
+            todo += kids
+    return out
+
+
+def _is_worker(pid: int) -> bool:
+    try:
+        return b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+@pytest.mark.blender
+def test_workers_die_with_their_parent(tmp_path):
+    out = tmp_path / "intr"
+    proc = subprocess.Popen([sys.executable, "-m", "blender_gen.cli", "intrinsics", "--out", str(out), "--count", "400",
+                             "--resolution", "64x32", "--workers", "2", "--quiet"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            manifest = out / "manifest.jsonl"
+            if manifest.exists() and len(manifest.read_text().splitlines()) >= 2:
+                break
+            time.sleep(0.2)
+        workers = {p for p in _descendants(proc.pid) if _is_worker(p)}
+        assert len(workers) == 2, "the two Blender workers should be running"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 10
+        while time.time() < deadline and any(_alive(p) for p in workers):
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in workers), "workers outlived their killed parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    # the killed run resumes: the lock died with it and the finished samples are kept
+    assert len(read_manifest(out / "manifest.jsonl")) >= 2
+
+
+def _full_path(tmp_path: Path, name: str) -> Path:
+    """A target whose temporary is a link to /dev/full: every write fails with ENOSPC."""
+    target = tmp_path / name
+    os.symlink("/dev/full", temp_name(target))
+    return target
+
+
+@pytest.mark.parametrize("writer", [
+    lambda p: atomic_write_bytes(p, b"x" * 100_000),
+    lambda p: write_exr(p, {"mask": __import__("numpy").ones((64, 64, 1))}),
+    lambda p: save_png(p, __import__("numpy").zeros((64, 64, 3), "uint8")),
+])
+def test_a_full_disk_is_one_error_naming_the_file_and_leaves_nothing(tmp_path, writer):
+    target = _full_path(tmp_path, "file.out")
+    with pytest.raises(DatasetWriteError) as err:
+        writer(target)
+    assert str(err.value).startswith(f"cannot write {target}: ")
+    # the OS's reason follows (OpenEXR, which seeks, sees /dev/full as "Invalid argument")
+    assert len(str(err.value).splitlines()) == 1 and str(err.value).split(": ", 1)[1]
+    assert list(tmp_path.iterdir()) == [], "neither the file nor its temporary may remain"
+
+
+@pytest.fixture
+def small_tmpfs(tmp_path):
+    """A 600 KiB file system, to fill up for real (needs root, as in CI)."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+@pytest.mark.blender
+def test_generation_on_a_full_then_read_only_disk(small_tmpfs):
+    out = small_tmpfs / "intr"
+    proc = run_gen("intrinsics", "--out", str(out), "--count", "400", "--resolution", "128x64", "--quiet", check=False)
+    _one_line_error(proc, "No space left on device")
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    leftovers = [p for p in out.rglob(".*") if p.name != ".lock"]
+    assert leftovers == [], f"half-written temporaries left: {leftovers}"
+    ds = open_dataset(out)
+    assert 0 < len(ds) < 400
+    for row in ds.rows:  # every sample the manifest names is whole
+        assert (out / row["file"]).stat().st_size > 0
+    subprocess.run(["mount", "-o", "remount,ro", str(small_tmpfs)], check=True)
+    proc = run_gen("intrinsics", "--out", str(out), "--count", "400", "--resolution", "128x64", "--quiet", check=False)
+    _one_line_error(proc, "Read-only file system", str(out))
