@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-v2
 OUT    ?= out
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench reproduce clean
 
 # One pip call with all pins so the resolver cannot upgrade numpy past bpy's limit
 # or fetch a CUDA torch.
@@ -40,6 +40,13 @@ demo: $(STAMP)
 	$(VENV)/bin/iae-eval report $(DEMO)/run --data $(DEMO)/pbr_eval --real $(DEMO)/pbr_real \
 		--intrinsics $(DEMO)/intrinsics_unseen --out $(DEMO)/report --quiet
 	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"
+
+# The paper's comparison end to end (eval/reproduce.py): BUDGET=smoke|cpu|gpu|paper; more options
+# through REPRO_ARGS, e.g. REPRO_ARGS="--steps 3000 --runs full,oracle --out out/mine". Resumes.
+BUDGET ?= smoke
+REPRO_ARGS ?=
+reproduce: $(STAMP)
+	$(VENV)/bin/iae-eval reproduce --budget $(BUDGET) $(REPRO_ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

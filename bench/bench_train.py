@@ -18,19 +18,30 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
+# (preset, overrides) per model kind and width: "paper" widths and cpu-small-like narrow ones
+WIDTHS = {
+    ("iae", "paper"): ("paper", []),
+    ("iae", "cpu-small"): ("cpu-small", []),
+    ("cyclegan", "paper"): ("cyclegan", []),
+    ("cyclegan", "cpu-small"): ("cyclegan", ["cyclegan.ngf=16", "cyclegan.n_blocks=4", "cyclegan.ndf=16"]),
+    ("munit", "paper"): ("munit", []),
+    ("munit", "cpu-small"): ("munit", ["munit.dim=16", "munit.n_res=2", "munit.mlp_dim=64", "munit.d_ndf=16"]),
+}
+
+
 def one(config: str, steps: int, h: int, w: int, kind: str) -> dict:
     import torch
 
     from train.config import load_config
-    from train.loop import discriminator_step, generator_step
+    from train.loop import build_optimisation, discriminator_step, generator_step
     from train.model import build_model
 
-    cfg = load_config(config, [f"data.height={h}", f"data.width={w}", f"model.kind={kind}", "data.batch_size=1"])
+    preset, extra = WIDTHS[(kind, config)]
+    cfg = load_config(preset, [f"data.height={h}", f"data.width={w}", "data.batch_size=1", *extra])
     torch.manual_seed(0)
     model = build_model(cfg)
-    g = [p for m in model.generator_modules().values() for p in m.parameters()]
-    d = [p for m in model.discriminator_modules().values() for p in m.parameters()]
-    opt_g, opt_d = torch.optim.Adam(g, 2e-4, betas=(0.5, 0.999)), torch.optim.Adam(d, 2e-4, betas=(0.5, 0.999))
+    g, d, opts, _ = build_optimisation(cfg, model)
+    opt_g, opt_d = opts["G"], opts["D"]
     m_s, i_r = torch.rand(1, 9, h, w) * 2 - 1, torch.rand(1, 3, h, w) * 2 - 1
     out, _ = generator_step(model, opt_g, g, m_s, i_r)  # warm-up
     discriminator_step(model, opt_d, d, out)

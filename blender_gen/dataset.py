@@ -356,3 +356,27 @@ def verify_rows(root: Path, rows: list[dict]) -> tuple[list[dict], list[tuple[di
         else:
             good.append(row)
     return good, bad
+
+
+class DatasetWriter:
+    """Writes a dataset in one process: dataset.json first (incomplete), then per sample its
+    EXR (atomic), its checksum and its manifest row, and finally the count and `complete`."""
+
+    def __init__(self, root: Path, info: dict):
+        self.root = Path(root)
+        (self.root / "samples").mkdir(parents=True, exist_ok=True)
+        self.info = {"format_version": FORMAT_VERSION, **info, "count": 0, "complete": False}
+        atomic_write_json(self.root / "dataset.json", self.info)
+
+    def add(self, index: int, layers: dict[str, np.ndarray], **row) -> dict:
+        rel = sample_filename(index)
+        write_exr(self.root / rel, layers)
+        full = {"index": index, "file": rel, "sha256": sha256_file(self.root / rel), **row}
+        append_manifest(self.root / "manifest.jsonl", full)
+        self.info["count"] += 1
+        return full
+
+    def finish(self) -> dict:
+        self.info["complete"] = self.info["count"] == self.info.get("count_requested", self.info["count"])
+        atomic_write_json(self.root / "dataset.json", self.info)
+        return self.info

@@ -132,5 +132,13 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
     click.echo((Path(out) / "report.md").read_text())
 
 
+def _add_reproduce() -> None:
+    from .reproduce import reproduce_cmd
+
+    main.add_command(reproduce_cmd)
+
+
+_add_reproduce()
+
 if __name__ == "__main__":
     main()

@@ -34,6 +34,8 @@ def run_label(cfg: Config) -> str:
         return "CycleGAN"
     if cfg.model.kind == "munit":
         return "MUNIT"
+    if cfg.model.kind == "oracle":
+        return "Supervised oracle (paired PBR)"
     parts = []
     if not cfg.loss.shared_discriminator:
         parts.append("w/o shared discr.")
@@ -108,8 +110,31 @@ def _cached_predictions(run: Path, data: Path, pred_dir: Path, limit: int | None
     return info["step"]
 
 
+def _reference_entries(train_intrinsics: Path, data: Path, real: Path, intrinsics: Path, out: Path,
+                       size: tuple[int, int], limit: int | None, grid: int, feat, real_features,
+                       progress: bool) -> list[dict]:
+    """The constant predictor (Table 3) and the albedo-copy renderer (Table 1), on the same sets."""
+    import shutil
+
+    from .reference_rows import albedo_images, constant_predictions
+
+    rdir = out / "runs" / "reference"
+    shutil.rmtree(rdir, ignore_errors=True)
+    pred_dir = constant_predictions(train_intrinsics, data, rdir / "constant", progress=progress)
+    rows, dec = score_predictions(data, pred_dir, limit=limit, progress=progress)
+    write_results(rows, dec, rdir / "constant.json")
+    copies = albedo_images(intrinsics, rdir / "albedo", limit=limit, progress=progress)
+    fidkid = compare_sets(real, copies, size, limit, model=feat, real_features=real_features, progress=progress)
+    base = {"run": "-", "step": "-", "curve": None, "reference": True}
+    return [{**base, "label": "Constant predictor", "slug": "constant", "dec": dec, "fid": None, "rendered": [],
+             "pred_dir": pred_dir},
+            {**base, "label": "Albedo copy (no renderer)", "slug": "albedo", "dec": None, "fid": fidkid,
+             "rendered": sorted(copies.glob("*.png"))[:grid], "pred_dir": None}]
+
+
 def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics: Path, limit: int | None = None,
-                 grid: int = 4, inception: str | None = None, progress: bool = True) -> Path:
+                 grid: int = 4, inception: str | None = None, progress: bool = True,
+                 references: bool = True) -> Path:
     """Evaluate every run on the same sets and write report.html, report.md and results.json.
 
     Refuses sets that overlap against the protocol (eval.protocol); FID/KID fakes are R's
@@ -159,12 +184,20 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
             atomic_write_bytes(rdir / "losses.png", curve)
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,
                         "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
+    if references:
+        run, opts, cfg = runs_opts[0]
+        size = (cfg.data.height, cfg.data.width)
+        entries += _reference_entries(Path(opts["intrinsics"]), data, real, Path(intrinsics), out, size, limit, grid,
+                                      feat, real_feats[size], progress)
     datasets = [v.summary() for v in sets.values()]
     page = _html(entries, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
     atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
     atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in ("run", "label", "step", "dec", "fid")}
-                                                      for e in entries], "datasets": datasets, "warnings": warnings})
+                                                      for e in entries if not e.get("reference")],
+                                             "references": [{k: e[k] for k in ("label", "dec", "fid")}
+                                                            for e in entries if e.get("reference")],
+                                             "datasets": datasets, "warnings": warnings})
     return out / "report.html"
 
 
@@ -173,6 +206,8 @@ def _table1(entries) -> tuple[list[str], list[list[str]]]:
     rows = []
     for e in entries:
         f = e["fid"]
+        if f is None:
+            continue
         paper = PAPER_TABLE1.get(e["label"])
         fid = f"{f['fid']:.2f}" + (" (biased: < %d images)" % f["fid_min_images"] if f["fid_biased"] else "")
         rows.append([Path(e["run"]).name, e["label"], str(e["step"]), fid, f"{100 * f['kid']:.2f}",
@@ -184,18 +219,36 @@ def _table1(entries) -> tuple[list[str], list[list[str]]]:
 def _table3(entries) -> tuple[list[str], list[list[str]]]:
     head = ["Run", "Config", "Normal mean (deg)", "Normal median", "< 11.25°", "< 22.5°", "< 30°",
             "Albedo L1 (0-255)", "Albedo si-L1 (lin.)", "Reflection L1 (0-255)", "samples",
-            "paper normal / albedo / reflection"]
+            "gap closed N / A / F", "paper normal / albedo / reflection"]
     rows = []
     for e in entries:
         d = e["dec"]
+        if d is None:
+            continue
         paper = PAPER_TABLE3.get(e["label"])
         rows.append([Path(e["run"]).name, e["label"], f"{d['normal_mean_deg']:.2f}", f"{d['normal_median_deg']:.2f}",
                      f"{d['normal_under_11.25_pct']:.1f}%", f"{d['normal_under_22.5_pct']:.1f}%",
                      f"{d['normal_under_30_pct']:.1f}%", f"{d['albedo_l1_srgb255']:.2f}",
                      f"{d['albedo_si_l1_linear']:.4f}", f"{d['reflection_l1_srgb255']:.2f}",
-                     f"{d['samples']} of {d.get('expected', d['samples'])}",
+                     f"{d['samples']} of {d.get('expected', d['samples'])}", _gap_closed(d, entries),
                      f"{paper[0]:.2f}° / {paper[1]:.2f} / {paper[2]:.2f}" if paper else "-"])
     return head, rows
+
+
+GAP_METRICS = ("normal_mean_deg", "albedo_l1_srgb255", "reflection_l1_srgb255")
+
+
+def _gap_closed(d: dict, entries) -> str:
+    """Per metric, the fraction of the constant-predictor-to-oracle gap a run closes (1 = as good as the oracle)."""
+    ref = {e["label"]: e["dec"] for e in entries if e["dec"] is not None}
+    const, oracle = ref.get("Constant predictor"), ref.get("Supervised oracle (paired PBR)")
+    if const is None or oracle is None:
+        return "-"
+    parts = []
+    for k in GAP_METRICS:
+        gap = const[k] - oracle[k]
+        parts.append(f"{(const[k] - d[k]) / gap:.2f}" if abs(gap) > 1e-9 else "-")
+    return " / ".join(parts)
 
 
 def _datasets_table(datasets: list[dict]) -> tuple[list[str], list[list[str]]]:
@@ -243,20 +296,23 @@ def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets
 
     # rendering grid: the same intrinsics inputs, then each run's image
     intr_ds = open_dataset(intrinsics, kinds=("intrinsics", "pbr"))
+    renderers = [e for e in entries if e["rendered"]]
     ren_rows = []
     for j in range(min(grid, len(intr_ds))):
         layers = intr_ds.load(j, INTRINSIC_LAYERS)
         cells = [_img(_data_uri(_png_bytes(preview_srgb8(k, layers[k]))), f"input {k}") for k in INTRINSIC_LAYERS]
-        for e in entries:
+        for e in renderers:
             if j < len(e["rendered"]):
                 cells.append(_img(_data_uri(Path(e["rendered"][j]).read_bytes()), f"{e['label']} render"))
         ren_rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
-    ren_head = "".join(f"<th>{h}</th>" for h in ["normal", "albedo", "reflection"] + [html.escape(e["label"]) for e in entries])
+    ren_head = "".join(f"<th>{h}</th>" for h in ["normal", "albedo", "reflection"] + [html.escape(e["label"]) for e in renderers])
 
     # decomposition grid: image and ground truth, then each run's prediction
     gt_ds = open_dataset(data, kinds=("pbr",))
     preds = []
     for e in entries:
+        if e["pred_dir"] is None:
+            continue
         ds = open_dataset(e["pred_dir"])
         preds.append((e, ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
     dec_rows = []

@@ -139,6 +139,12 @@ def test_report_has_tables_like_the_papers(report):
     out, proc = report
     md = (out / "report.md").read_text()
     assert "Table 1" in md and "Table 3" in md and "Ours (full)" in md and "Ours, w/o shared discr." in md
+    assert "| Constant predictor |" in md and "| Albedo copy (no renderer) |" in md
+    assert "47.6 / 4.2" in md and "14.73° / 52.74 / 51.74" in md  # the paper's figures beside ours
+    refs = {r["label"]: r for r in json.loads((out / "results.json").read_text())["references"]}
+    const = refs["Constant predictor"]["dec"]
+    assert 0 < const["normal_mean_deg"] < 90 and const["samples"] == 3
+    assert refs["Albedo copy (no renderer)"]["fid"]["fake_images"] == 3
     results = json.loads((out / "results.json").read_text())["runs"]
     assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
     assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)

@@ -389,3 +389,21 @@ def test_set_without_config_and_a_non_empty_out_are_one_line_errors(data, tmp_pa
         proc = _run(cmd[0], "--run", str(run), *cmd[1:], "--out", str(mine), "--quiet", check=False)
         assert proc.returncode == 1 and "is not an empty folder" in proc.stderr, proc.stderr
     assert [p.name for p in mine.iterdir()] == ["holiday.jpg"]
+
+
+def test_the_supervised_oracle_learns_from_pbr_pairs_and_needs_a_pbr_set(data, tmp_path):
+    intr, photos = data
+    pbr = tiny_intrinsics(tmp_path / "pbr", n=4, kind="pbr", seed=3)
+    torch.manual_seed(0)
+    cfg = tiny_cfg(model__kind="oracle", optim__lr=1e-3, run__checkpoint_every=1000, run__grid_every=1000)
+    model = build_model(cfg)
+    assert model.discriminator_modules() == {} and set(model.generator_modules()) == {"R", "H"}
+    fit(tmp_path / "o", cfg, str(intr), str(pbr), max_steps=40, progress=False)
+    rows = _stats(tmp_path / "o")
+    for key in ("G/render_l1", "G/decompose_l1"):
+        vals = [r[key] for r in rows]
+        assert np.mean(vals[-5:]) < 0.7 * np.mean(vals[:3]), (key, vals[:3], vals[-5:])
+    with pytest.raises(ConfigError, match="needs a PBR dataset"):
+        fit(tmp_path / "o2", cfg, str(intr), str(photos), max_steps=2, progress=False)
+    with pytest.raises(ConfigError, match="loss.gan does not apply to model.kind = 'oracle'"):
+        load_config("cpu-small", ["model.kind=oracle", "loss.gan=lsgan"])

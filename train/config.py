@@ -30,7 +30,7 @@ class DataConfig:
 class ModelConfig:
     """The Intrinsic Autoencoder's networks (model.kind = "iae"); baselines have their own sections."""
 
-    kind: str = "iae"  # "iae" (the paper), "cyclegan", "munit"
+    kind: str = "iae"  # "iae" (the paper), "cyclegan", "munit", or "oracle" (R and H trained on paired PBR data)
     inputs: str = "NAF"  # which intrinsics R sees: any subset of N (normal), A (albedo), F (reflection)
     # R: pix2pixHD global generator (+ optional local enhancer)
     r_ngf: int = 64
@@ -62,6 +62,9 @@ class LossConfig:
     w_norm: float = 1.0
     w_adv: float = 1.0
     smooth_l1_beta: float = 1.0 / 16  # Smooth-L1 threshold in network units ([-1, 1])
+    # Not in the paper: std of Gaussian noise added to R(M_s) and H(I_r) before the second network of
+    # each cycle, so neither can pass the input on as a faint hidden code (Chu et al. 2017); 0 = the paper.
+    cycle_noise: float = 0.0
     normal_threshold: float = 0.5  # the length loss applies where |n| > this (not on background)
 
 
@@ -143,7 +146,7 @@ class Config:
 
 
 # The sections each model kind reads; a changed value anywhere else would be ignored, so it is refused.
-KIND_SECTIONS = {"iae": ("model", "loss"), "cyclegan": ("cyclegan",), "munit": ("munit",)}
+KIND_SECTIONS = {"iae": ("model", "loss"), "cyclegan": ("cyclegan",), "munit": ("munit",), "oracle": ("model",)}
 
 
 class ConfigError(ValueError):
@@ -270,7 +273,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.normal_threshold",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):
@@ -282,7 +285,8 @@ def validate(cfg: Config) -> Config:
         raise ConfigError(f"optim.step_gamma: expected a value in (0, 1], got {o.step_gamma!r}")
     if not lo.smooth_l1_beta > 0:
         raise ConfigError(f"loss.smooth_l1_beta: expected a positive number, got {lo.smooth_l1_beta!r}")
-    div = {"iae": 2 ** (m.r_downsample + m.r_local_enhancers), "cyclegan": 2 ** cfg.cyclegan.n_down,
+    div = {"iae": 2 ** (m.r_downsample + m.r_local_enhancers), "oracle": 2 ** (m.r_downsample + m.r_local_enhancers),
+           "cyclegan": 2 ** cfg.cyclegan.n_down,
            "munit": 2 ** cfg.munit.n_down}[m.kind]
     if cfg.data.height % div or cfg.data.width % div:
         raise ConfigError(f"data.height/width ({cfg.data.height}x{cfg.data.width}) must be multiples of {div} "

@@ -11,8 +11,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from blender_gen.conversions import from_network, preview_srgb8
-from blender_gen.dataset import (FORMAT_VERSION, INTRINSIC_LAYERS, DatasetError, append_manifest, atomic_write_json,
-                                 folder_is_empty, sample_filename, save_png, sha256_file, write_exr)
+from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, DatasetWriter, folder_is_empty, save_png
 from .checkpoint import CheckpointError, load_newest, load_weights, read_state
 from .config import Config, config_from_dict
 from .data import IntrinsicsData, RealImages
@@ -96,19 +95,17 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
     reals = RealImages(images, cfg.data.height, cfg.data.width)
     n = len(reals) if limit is None else min(limit, len(reals))
     out = fresh_output(out)
-    (out / "samples").mkdir(parents=True, exist_ok=True)
     (out / "previews").mkdir(exist_ok=True)
     if reals.ds is not None:
         src_w, src_h = reals.ds.resolution
     else:
         src_w, src_h = cfg.data.width, cfg.data.height
     # provenance: the scorer refuses predictions of another source set (recipe, and each image's checksum)
-    info = {"format_version": FORMAT_VERSION, "kind": "predictions", "resolution": [src_w, src_h], "count": 0,
-            "count_requested": n, "complete": False, "source": str(Path(images).resolve()),
-            "source_recipe": reals.ds.info.get("recipe") if reals.ds is not None else None, "limit": limit,
-            "run": str(Path(run_dir).resolve()), "step": step, "model": cfg.model.kind, "config_name": cfg.name,
-            "layers": list(INTRINSIC_LAYERS)}
-    atomic_write_json(out / "dataset.json", info)
+    writer = DatasetWriter(out, {
+        "kind": "predictions", "resolution": [src_w, src_h], "count_requested": n, "source": str(Path(images).resolve()),
+        "source_recipe": reals.ds.info.get("recipe") if reals.ds is not None else None, "limit": limit,
+        "run": str(Path(run_dir).resolve()), "step": step, "model": cfg.model.kind, "config_name": cfg.name,
+        "layers": list(INTRINSIC_LAYERS)})
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         img = torch.stack([reals[(i, False)] for i in idx]).to(device)
@@ -119,14 +116,9 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
             arr = p.permute(1, 2, 0).cpu().numpy()
             layers = {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(INTRINSIC_LAYERS)}
             index = reals.ds.rows[i]["index"] if reals.ds is not None else i
-            rel = sample_filename(index)
-            write_exr(out / rel, layers)
             preview = np.concatenate([preview_srgb8(k, layers[k]) for k in INTRINSIC_LAYERS], axis=1)
             save_png(out / "previews" / f"{index:06d}.png", preview)
-            row = {"index": index, "file": rel, "sha256": sha256_file(out / rel), "source": reals.source_name(i)}
-            if reals.ds is not None:
-                row["source_sha256"] = reals.ds.rows[i]["sha256"]
-            append_manifest(out / "manifest.jsonl", row)
-    info["count"], info["complete"] = n, True
-    atomic_write_json(out / "dataset.json", info)
+            source = {"source_sha256": reals.ds.rows[i]["sha256"]} if reals.ds is not None else {}
+            writer.add(index, layers, source=reals.source_name(i), **source)
+    writer.finish()
     return out

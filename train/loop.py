@@ -199,7 +199,9 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
 def check_data(cfg: Config, intrinsics: str, real: str) -> None:
     """Open both datasets (DatasetError names the one that is missing or malformed)."""
     IntrinsicsData(Path(intrinsics), cfg.data.height, cfg.data.width)
-    RealImages(Path(real), cfg.data.height, cfg.data.width)
+    reals = RealImages(Path(real), cfg.data.height, cfg.data.width)
+    if cfg.model.kind == "oracle" and reals.ds is None:
+        raise ConfigError(f"--real {real}: the supervised oracle needs a PBR dataset (images with their intrinsics)")
 
 
 class StopRequest:
@@ -246,7 +248,9 @@ def build_optimisation(cfg: Config, model) -> tuple[list, list, dict, dict]:
     g_params = [p for m in model.generator_modules().values() for p in m.parameters()]
     d_params = [p for m in model.discriminator_modules().values() for p in m.parameters()]
     adam = {"lr": cfg.optim.lr, "betas": (cfg.optim.beta1, cfg.optim.beta2), "weight_decay": cfg.optim.weight_decay}
-    optimizers = {"G": torch.optim.Adam(g_params, **adam), "D": torch.optim.Adam(d_params, **adam)}
+    optimizers = {"G": torch.optim.Adam(g_params, **adam)}
+    if d_params:  # the supervised oracle has no discriminators
+        optimizers["D"] = torch.optim.Adam(d_params, **adam)
     lam = lr_factor(cfg.optim)
     schedulers = {k: torch.optim.lr_scheduler.LambdaLR(o, lam) for k, o in optimizers.items()}
     return g_params, d_params, optimizers, schedulers
@@ -314,7 +318,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     # ---------------------------------------------------------------- model, optimisers, resume
     model = build_model(cfg).to(device)
     g_params, d_params, optimizers, schedulers = build_optimisation(cfg, model)
-    opt_g, opt_d = optimizers["G"], optimizers["D"]
+    opt_g, opt_d = optimizers["G"], optimizers.get("D")
     ckpt_dir = run_dir / "checkpoints"
     state, resumed_from, skipped = load_newest(ckpt_dir, model, optimizers, schedulers)
     for why in skipped if dd.main else []:
@@ -331,10 +335,11 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
 
     # ---------------------------------------------------------------- data
     h, w = cfg.data.height, cfg.data.width
-    intr = IntrinsicsData(Path(opts["intrinsics"]), h, w)
+    paired = getattr(model, "paired", False)  # the oracle: M_s are the intrinsics of the real (PBR) images
+    intr = IntrinsicsData(Path(opts["real" if paired else "intrinsics"]), h, w)
     reals = RealImages(Path(opts["real"]), h, w)
     bs = cfg.data.batch_size
-    s_m = StepSampler(len(intr), bs, cfg.run.seed, 0, start, dd.rank, dd.world, cfg.data.hflip)
+    s_m = StepSampler(len(intr), bs, cfg.run.seed, 1 if paired else 0, start, dd.rank, dd.world, cfg.data.hflip)
     s_i = StepSampler(len(reals), bs, cfg.run.seed, 1, start, dd.rank, dd.world, cfg.data.hflip)
     it_m = infinite_loader(intr, s_m, cfg.data.workers)
     it_i = infinite_loader(reals, s_i, cfg.data.workers)
@@ -366,7 +371,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
                     i_r = i_r.contiguous(memory_format=torch.channels_last)
                 model.train()
                 out, g_logs = generator_step(model, opt_g, g_params, m_s, i_r, autocast, dd.world)
-                d_logs = discriminator_step(model, opt_d, d_params, out, autocast, dd.world)
+                d_logs = discriminator_step(model, opt_d, d_params, out, autocast, dd.world) if opt_d else {}
                 for sched in schedulers.values():
                     sched.step()
                 step += 1
@@ -377,7 +382,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
                                         f"good checkpoint is {latest_checkpoint(ckpt_dir) or 'none (no checkpoint yet)'}")
                 last_logs = logs
                 bar.update()
-                bar.set_postfix({"G": f"{logs['G/total']:.3f}", "D": f"{logs['D/total']:.3f}"}, refresh=False)
+                bar.set_postfix({k[0]: f"{logs[k]:.3f}" for k in ("G/total", "D/total") if k in logs}, refresh=False)
                 if step % cfg.run.log_every == 0 or step == end:
                     stats.log(step, schedulers["G"].get_last_lr()[0], logs)
                 if dd.main and (step % cfg.run.grid_every == 0 or step == end):

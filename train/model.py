@@ -59,11 +59,17 @@ class IntrinsicAutoencoder(nn.Module):
         out = {"M_s": m_s, "I_r": i_r}
         if lc.rendering_cycle or everything:
             out["fake_I"] = self.render(m_s)  # R(M_s)
-            out["rec_M"] = self.H(out["fake_I"])  # H(R(M_s))
+            out["rec_M"] = self.H(self._noisy(out["fake_I"]))  # H(R(M_s))
         if lc.decomposition_cycle or everything:
             out["fake_M"] = self.H(i_r)  # H(I_r)
-            out["rec_I"] = self.render(out["fake_M"])  # R(H(I_r))
+            out["rec_I"] = self.render(self._noisy(out["fake_M"]))  # R(H(I_r))
         return out
+
+    def _noisy(self, x: torch.Tensor) -> torch.Tensor:
+        """`loss.cycle_noise` (training only): the discriminators still see the clean outputs."""
+        if self.training and self.loss_cfg.cycle_noise > 0:
+            return x + self.loss_cfg.cycle_noise * torch.randn_like(x)
+        return x
 
     def discriminator_inputs(self, out: dict[str, torch.Tensor]) -> dict[str, tuple[torch.Tensor, list[str]]]:
         """Which tensors each discriminator sees: (real, names of fakes).
@@ -122,9 +128,38 @@ class IntrinsicAutoencoder(nn.Module):
         return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I") if k in out}
 
 
+class SupervisedOracle(IntrinsicAutoencoder):
+    """Not in the paper: the same R and H trained with paired data (PBR images and their own
+    intrinsics), by L1 in network space. Run with the same budget, it separates what the unpaired
+    setting costs from what the budget costs. Training pairs come from the --real PBR set."""
+
+    paired = True
+
+    def __init__(self, cfg: Config):
+        super().__init__(cfg)
+        del self.D_I, self.D_M
+
+    def discriminator_modules(self) -> dict[str, nn.Module]:
+        return {}
+
+    def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor, everything: bool = False) -> dict[str, torch.Tensor]:
+        """`m_s` are the intrinsics of the images `i_r` here."""
+        return {"M_s": m_s, "I_r": i_r, "fake_I": self.render(m_s), "fake_M": self.H(i_r)}
+
+    def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        logs = {"G/render_l1": (out["fake_I"] - out["I_r"]).abs().mean(),
+                "G/decompose_l1": (out["fake_M"] - out["M_s"]).abs().mean()}
+        return finish_logs(logs["G/render_l1"] + logs["G/decompose_l1"], logs, "G")
+
+    def discriminator_loss(self, out):
+        raise RuntimeError("the supervised oracle has no discriminators")
+
+
 def build_model(cfg: Config) -> nn.Module:
     if cfg.model.kind == "iae":
         return IntrinsicAutoencoder(cfg)
+    if cfg.model.kind == "oracle":
+        return SupervisedOracle(cfg)
     from . import baselines
 
     return baselines.build(cfg)
