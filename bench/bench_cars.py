@@ -9,7 +9,6 @@ import json
 import time
 from pathlib import Path
 
-import bpy
 import numpy as np
 
 from blender_gen.recipe import Recipe
@@ -20,30 +19,17 @@ KENNEY = ROOT.parent / "shared" / "assets" / "cars3d"
 RULES = ROOT / "data_manifests" / "kenney_car_kit_rules.toml"
 
 
-def _forget(r: SampleRenderer) -> None:
-    """Delete every built car so the next sample builds its model again."""
-    for car in list(r._cars.values()):
-        meshes = {o.data for o in car.objects.values()}
-        for o in list(car.collection.objects):
-            bpy.data.objects.remove(o, do_unlink=True)
-        for m in meshes:
-            bpy.data.meshes.remove(m)
-        bpy.data.collections.remove(car.collection)
-    r._cars.clear()
-    r._visible = None  # the shown car is gone
-
-
 def throughput(views_per_car: int, n: int, rebuild: bool, w: int, h: int) -> float:
     r = SampleRenderer(Recipe(kind="intrinsics", seed=1, width=w, height=h, views_per_car=views_per_car), threads=0)
     for spec in r.car_specs:  # every model built once, every sky made once
-        r._car(spec)
+        r.car(spec)
     for name in r.env_names:
-        r._env_image(name)
+        r.env_image(name)
     r.render_layers(0)
     t = time.perf_counter()
     for i in range(1, n + 1):
         if rebuild:
-            _forget(r)
+            r.forget_cars()
         r.render_layers(i)
     dt = time.perf_counter() - t
     r.close()
@@ -60,7 +46,7 @@ def main() -> None:
     times = []
     for spec in r.car_specs:
         t = time.perf_counter()
-        r._car(spec)
+        r.car(spec)
         times.append(time.perf_counter() - t)
     print(f"procedural catalogue: {len(times)} models, build (NumPy geometry + Blender objects) "
           f"mean {1000 * np.mean(times):.0f} ms, max {1000 * np.max(times):.0f} ms per model", flush=True)
@@ -72,7 +58,7 @@ def main() -> None:
         imp = []
         for spec in r.car_specs:
             t = time.perf_counter()
-            r._car(spec)
+            r.car(spec)
             imp.append(time.perf_counter() - t)
         r.close()
         result["kenney_import_ms_mean"] = 1000 * float(np.mean(imp))

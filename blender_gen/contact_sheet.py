@@ -34,7 +34,7 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
     tiles = []
     try:
         for spec in r.car_specs:
-            car = r._car(spec)
+            car = r.car(spec)
             r.show(car)
             lo, hi = car.points.min(axis=0), car.points.max(axis=0)
             centre = 0.5 * (lo + hi)
@@ -42,7 +42,7 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
             az = math.radians(35.0)  # front three-quarter view from the car's left
             loc = centre + np.array([math.cos(az), math.sin(az), 0.0]) * 1.55 * length + np.array([0, 0, 1.2])
             pose = CameraPose(tuple(loc), tuple(map(tuple, look_at(loc, centre))), tuple(centre), 35.0, 36.0)
-            r._place({"car": car, "paint": r.table.paints[paint], "rotation": 0.0, "pose": pose})
+            r.place({"car": car, "paint": r.table.paints[paint], "rotation": 0.0, "pose": pose})
             img = Image.fromarray(shaded(r.render_current()))
             ImageDraw.Draw(img).text((6, 4), f"{spec.name} ({spec.category}, {spec.split})", fill=(20, 20, 20))
             tiles.append(img)

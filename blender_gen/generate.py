@@ -101,6 +101,19 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
 _worker = None
 
 
+def make_renderer(recipe: Recipe, threads: int = 0):
+    """The Blender renderer for the recipe's dataset kind (imports bpy)."""
+    if recipe.kind == "intrinsics":
+        from .render import SampleRenderer
+
+        return SampleRenderer(recipe, threads)
+    if recipe.kind == "pbr":
+        from .pbr import PbrRenderer
+
+        return PbrRenderer(recipe, threads)
+    raise ValueError(f"unknown dataset kind {recipe.kind!r}")
+
+
 def die_with_parent(parent: int) -> None:
     """End this process as soon as `parent` is gone (a killed `iae-gen` leaves no workers).
 
@@ -129,8 +142,6 @@ def die_with_parent(parent: int) -> None:
 def _init_worker(recipe: Recipe, threads: int, parent: int) -> None:
     global _worker
     die_with_parent(parent)
-    from .render import make_renderer
-
     _worker = make_renderer(recipe, threads)
 
 
@@ -183,8 +194,6 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
 
     try:
         if todo and workers == 1:
-            from .render import make_renderer
-
             renderer = make_renderer(recipe, threads)
             try:
                 for i in todo:

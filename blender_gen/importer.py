@@ -31,6 +31,9 @@ class ImportedModel:
     unmatched: int  # faces that fell to the default part
 
 
+
+BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
+
 def _read_objects(path: Path) -> list[bpy.types.Object]:
     before = set(bpy.data.objects)
     suffix = path.suffix.lower()
@@ -41,6 +44,10 @@ def _read_objects(path: Path) -> list[bpy.types.Object]:
         elif suffix == ".obj":
             bpy.ops.wm.obj_import(filepath=str(path))
         elif suffix == ".blend":
+            with open(path, "rb") as fh:
+                magic = fh.read(7)
+            if not magic.startswith(BLEND_MAGICS):
+                raise RulesError(f"{path}: not a .blend file (no BLENDER header, nor a gzip/zstd-compressed one)")
             # Appending data blocks never executes text blocks, drivers or handlers.
             with bpy.data.libraries.load(str(path), link=False) as (src, dst):
                 dst.objects = list(src.objects)
@@ -84,7 +91,10 @@ def import_model(path: str | Path, rules: Rules) -> ImportedModel:
     if not path.is_file():
         raise RulesError(f"--cars {path}: no such model file")
     settings = rules.settings_for(path)
-    objects = _read_objects(path)
+    try:
+        objects = _read_objects(path)
+    except RuntimeError as exc:  # Blender's importers report a bad file as RuntimeError
+        raise RulesError(f"{path}: cannot be imported ({str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r})") from None
     try:
         meshes = [o for o in objects if o.type == "MESH"]
         if not meshes:

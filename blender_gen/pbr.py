@@ -57,12 +57,12 @@ class PbrRenderer(SampleRenderer):
         # Lamps glow and show in reflections; sampling them as lights costs more than it adds.
         self.shader.cycles.emission_sampling = "NONE"
 
-    def _set_environment(self, img) -> None:
-        super()._set_environment(img)
+    def set_environment(self, img) -> None:
+        super().set_environment(img)
         if self.world_env.image != img:
             self.world_env.image = img  # Cycles rebuilds its light-sampling map: once per block
 
-    def _place(self, d: dict) -> None:
+    def place(self, d: dict) -> None:
         """Turn car and camera by -rotation instead of the world by +rotation.
 
         Both give the same picture and the same camera-space layers, but a changed world

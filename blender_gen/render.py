@@ -40,7 +40,7 @@ class SampleRenderer:
         self.materials = {**self.table.parts}
         self.env_names = recipe.envmap_names()
         self._env_images: dict[str, bpy.types.Image] = {}
-        self.shader, self.env_node = S.car_material(self._env_image(self.env_names[0]), physical=self.physical)
+        self.shader, self.env_node = S.car_material(self.env_image(self.env_names[0]), physical=self.physical)
         self._setup_lighting()
         self._part_materials, self._tinted = load_part_materials()
         self.car_specs = self._resolve_cars()
@@ -58,11 +58,11 @@ class SampleRenderer:
     def _setup_lighting(self) -> None:
         """Intrinsics need no light: AOVs only, the world stays black."""
 
-    def _set_environment(self, img) -> None:
+    def set_environment(self, img) -> None:
         if self.env_node.image != img:
             self.env_node.image = img
 
-    def _place(self, d: dict) -> None:
+    def place(self, d: dict) -> None:
         """Paint, environment rotation (a shader attribute) and camera of a sample."""
         S.set_sample_state(d["car"], d["paint"], d["rotation"])
         S.set_camera(self.scene, d["pose"])
@@ -78,7 +78,7 @@ class SampleRenderer:
             specs += imported_specs(files, self._rules)
         return specs
 
-    def _env_image(self, name: str) -> bpy.types.Image:
+    def env_image(self, name: str) -> bpy.types.Image:
         img = self._env_images.get(name)
         if img is None:
             if name.startswith(PROCEDURAL_PREFIX):
@@ -89,11 +89,28 @@ class SampleRenderer:
             self._env_images[name] = img
         return img
 
+    @property
+    def cars(self) -> dict[str, S.CarInstance]:
+        """The car models built so far, by name."""
+        return self._cars
+
+    def forget_cars(self) -> None:
+        """Delete every built car, so the next sample builds its model again (for benchmarks)."""
+        for car in list(self._cars.values()):
+            meshes = {o.data for o in car.objects.values()}
+            for o in list(car.collection.objects):
+                bpy.data.objects.remove(o, do_unlink=True)
+            for m in meshes:
+                bpy.data.meshes.remove(m)
+            bpy.data.collections.remove(car.collection)
+        self._cars.clear()
+        self._visible = None  # the shown car is gone
+
     def env_pixels(self, name: str) -> np.ndarray:
         """The environment map exactly as the shader sees it (for reference checks)."""
-        return S.image_to_array(self._env_image(name))
+        return S.image_to_array(self.env_image(name))
 
-    def _car(self, spec) -> S.CarInstance:
+    def car(self, spec) -> S.CarInstance:
         car = self._cars.get(spec.name)
         if car is None:
             from .cars import build_car
@@ -122,7 +139,7 @@ class SampleRenderer:
         paint = self.paints[int(rng.integers(len(self.paints)))]
         env = self.env_names[int(block.integers(len(self.env_names)))]
         rotation = float(rng.uniform(0.0, 360.0))
-        car = self._car(spec)
+        car = self.car(spec)
         pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 
@@ -142,8 +159,8 @@ class SampleRenderer:
     def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
         d = self.draw(index)
         self.show(d["car"])
-        self._set_environment(self._env_image(d["env"]))
-        self._place(d)
+        self.set_environment(self.env_image(d["env"]))
+        self.place(d)
         self.scene.cycles.seed = d["seed"]
         return self.render_current(), d
 
@@ -192,13 +209,3 @@ class SampleRenderer:
         except OSError:
             pass
 
-
-def make_renderer(recipe: Recipe, threads: int = 0):
-    """The renderer for the recipe's dataset kind."""
-    if recipe.kind == "intrinsics":
-        return SampleRenderer(recipe, threads)
-    if recipe.kind == "pbr":
-        from .pbr import PbrRenderer
-
-        return PbrRenderer(recipe, threads)
-    raise ValueError(f"unknown dataset kind {recipe.kind!r}")

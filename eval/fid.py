@@ -60,7 +60,11 @@ class InceptionFeatures(torch.nn.Module):
             digest = hashlib.sha1(weights.read_bytes()).hexdigest()
             if digest != WEIGHTS_SHA1:
                 raise InceptionWeightsError(f"{weights}: sha1 {digest} is not the published {WEIGHTS_SHA1}")
-        self.net = torch.jit.load(str(weights), map_location="cpu").eval()
+        try:
+            self.net = torch.jit.load(str(weights), map_location="cpu").eval()
+        except (RuntimeError, ValueError, OSError) as exc:
+            raise InceptionWeightsError(f"{weights}: not a TorchScript file of the FID Inception network "
+                                        f"({str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r})") from None
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:

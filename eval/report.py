@@ -22,6 +22,7 @@ from PIL import Image  # noqa: E402
 from blender_gen.conversions import linear_to_srgb, preview_srgb8  # noqa: E402
 from blender_gen.dataset import INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset  # noqa: E402
 from train.config import Config  # noqa: E402
+from train.run_folder import RunFolder  # noqa: E402
 
 from .decomposition import score_predictions, write_results  # noqa: E402
 from .fid import FID_MIN_IMAGES, InceptionFeatures, compare_sets, extract  # noqa: E402
@@ -57,8 +58,7 @@ def _data_uri(png: bytes) -> str:
     return "data:image/png;base64," + base64.b64encode(png).decode()
 
 
-def loss_plot(stats: Path, title: str) -> bytes:
-    rows = [json.loads(line) for line in stats.read_text().splitlines() if line.strip()]
+def loss_plot(rows: list[dict], title: str) -> bytes:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
     steps = [r["step"] for r in rows]
     for ax, prefix in zip(axes, ("G/", "D/")):
@@ -178,8 +178,8 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
         fidkid = compare_sets(real, rdir / "rendered", size, limit, model=feat, real_features=real_feats[size],
                               progress=progress)
         atomic_write_json(rdir / "fid.json", fidkid)
-        stats = run / "stats.jsonl"
-        curve = loss_plot(stats, label) if stats.exists() else None
+        stats = RunFolder(run).stats()
+        curve = loss_plot(stats, label) if stats else None
         if curve:
             atomic_write_bytes(rdir / "losses.png", curve)
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,

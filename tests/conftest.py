@@ -12,6 +12,20 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED_ASSETS = ROOT.parent / "shared" / "assets"
 
 
+def assets_mark(sub: str):
+    """Tests on the shared CC0 assets: skipped on a machine without them, but never in CI,
+    where `../shared` is always beside the clone and a missing folder is a failure to see."""
+    missing = not (SHARED_ASSETS / sub).is_dir()
+    if missing and os.environ.get("CI"):
+        return pytest.mark.usefixtures("_fail_missing_assets")
+    return pytest.mark.skipif(missing, reason=f"shared CC0 assets not present ({SHARED_ASSETS / sub})")
+
+
+@pytest.fixture
+def _fail_missing_assets():
+    pytest.fail(f"{SHARED_ASSETS} is missing: CI runs with ../shared beside the clone")
+
+
 def run_gen(*args: str, check: bool = True) -> subprocess.CompletedProcess:
     """Run `iae-gen` in a fresh process (as a user would) and capture its output."""
     cmd = [sys.executable, "-m", "blender_gen.cli", *args]

@@ -158,3 +158,14 @@ def test_munit_optimiser_has_weight_decay_and_the_step_policy():
     assert [f(0), f(99_999), f(100_000), f(250_000)] == [1.0, 1.0, 0.5, 0.25]
     g = lr_factor(load_config("paper").optim)
     assert [g(0), g(100_000), g(150_000), g(200_000)] == [1.0, 1.0, 0.5, 0.0]
+
+
+@pytest.mark.parametrize("kind", ["iae", "cyclegan", "munit", "oracle"])
+def test_every_model_kind_implements_the_protocol(kind):
+    from train.model import ModelKind
+
+    cfg = load_config("cpu-small", ["model.kind=oracle"]) if kind == "oracle" else \
+        load_config("cpu-small") if kind == "iae" else cfg_for(kind)
+    model = build_model(cfg)
+    assert isinstance(model, ModelKind)
+    assert all(isinstance(m, torch.nn.Module) for m in model.generator_modules().values())

@@ -215,3 +215,50 @@ def test_generation_on_a_full_then_read_only_disk(small_tmpfs):
     subprocess.run(["mount", "-o", "remount,ro", str(small_tmpfs)], check=True)
     proc = run_gen("intrinsics", "--out", str(out), "--count", "400", "--resolution", "128x64", "--quiet", check=False)
     _one_line_error(proc, "Read-only file system", str(out))
+
+
+# ------------------------------------------------------------------ remaining one-line errors
+
+@pytest.mark.blender
+def test_a_blend_that_is_not_a_blend_and_rules_that_are_not_utf8(tmp_path):
+    rules = ROOT / "data_manifests" / "kenney_car_kit_rules.toml"
+    fake = tmp_path / "car.blend"
+    fake.write_bytes(b"PK\x03\x04 a zip file, not Blender's")
+    proc = run_gen("intrinsics", "--out", str(tmp_path / "o"), "--count", "1", "--resolution", "64x32", "--cars",
+                   str(fake), "--car-rules", str(rules), "--quiet", check=False)
+    _one_line_error(proc, "not a .blend file")
+    latin = tmp_path / "rules.toml"
+    latin.write_bytes("# r\xe9gles\n[model]\n".encode("latin-1"))
+    proc = run_gen("intrinsics", "--out", str(tmp_path / "p"), "--count", "1", "--cars", str(fake), "--car-rules",
+                   str(latin), check=False)
+    _one_line_error(proc, "not UTF-8 text")
+
+
+def test_a_config_that_is_not_utf8_and_inception_that_is_not_torchscript(tmp_path):
+    from train.config import ConfigError, load_config
+
+    cfg = tmp_path / "mine.toml"
+    cfg.write_bytes("# d\xe9faut\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match="not UTF-8 text"):
+        load_config(str(cfg))
+    bogus = tmp_path / "inception.pt"
+    bogus.write_bytes(b"\x80\x04 a pickle, not TorchScript")
+    photos = tmp_path / "photos"
+    from tests.train_helpers import tiny_photos
+
+    tiny_photos(photos)
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "fid", "--real", str(photos), "--fake", str(photos),
+                           "--inception", str(bogus)], cwd=ROOT, capture_output=True, text=True)
+    _one_line_error(proc, "not a TorchScript file")
+
+
+def test_inspect_on_a_predictions_dataset_and_on_a_row_without_checksum(tmp_path):
+    root = tiny_intrinsics(tmp_path / "pred", n=2)
+    info = json.loads((root / "dataset.json").read_text())
+    (root / "dataset.json").write_text(json.dumps({**info, "kind": "predictions"}))
+    rows = [{k: v for k, v in r.items() if k in ("index", "file", "sha256")} for r in _rows(root)]
+    _write_rows(root, rows)
+    proc = run_gen("inspect", str(root), "--quiet", check=False)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    _write_rows(root, [{k: v for k, v in rows[0].items() if k != "sha256"}])
+    _one_line_error(run_gen("inspect", str(root), "--quiet", check=False), "'sha256' must be 64 lowercase hex")

@@ -10,12 +10,12 @@ import pytest
 
 from blender_gen.rules import RulesError, load_rules
 
-from .conftest import ROOT, SHARED_ASSETS, run_gen
+from .conftest import ROOT, SHARED_ASSETS, assets_mark, run_gen
 
 pytestmark = pytest.mark.blender
 KENNEY = SHARED_ASSETS / "cars3d"
 RULES = ROOT / "data_manifests" / "kenney_car_kit_rules.toml"
-needs_assets = pytest.mark.skipif(not KENNEY.is_dir(), reason="shared CC0 assets not present")
+needs_assets = assets_mark("cars3d")
 
 
 def _in_blender(code: str) -> dict:
@@ -37,7 +37,7 @@ r = SampleRenderer(Recipe(kind='intrinsics', seed=0, width=64, height=32, cars=t
 glass = load_materials().parts['glass'].id
 res = {{}}
 for spec in r.car_specs:
-    car = r._car(spec)
+    car = r.car(spec)
     pts = car.points
     res[spec.name] = {{'parts': sorted(car.objects), 'category': spec.category,
         'glass': [car.objects[p]['iae_material'] == glass for p in ('windshield', 'window_side', 'window_rear') if p in car.objects],

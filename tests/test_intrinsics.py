@@ -16,7 +16,7 @@ from blender_gen.dataset import read_exr, read_manifest, sha256_file
 from blender_gen.envmap import reflection_reference
 from blender_gen.materials import BODY_MATERIAL_ID, load_materials
 
-from .conftest import ROOT, SHARED_ASSETS, run_gen
+from .conftest import ROOT, SHARED_ASSETS, assets_mark, run_gen
 
 pytestmark = pytest.mark.blender
 
@@ -90,7 +90,7 @@ def test_each_part_object_carries_its_material(renderer):
 
     table = load_materials()
     mapping, tinted = load_part_materials()
-    for car in renderer._cars.values():
+    for car in renderer.cars.values():
         spec = next(s for s in renderer.car_specs if s.name == car.name)
         for part, obj in car.objects.items():
             want = mapping[part]
@@ -241,7 +241,7 @@ def test_a_folder_of_another_recipe_is_refused_and_kept(tiny_intrinsics, tmp_pat
     assert proc.returncode != 0 and "not empty" in proc.stderr and (stray / "notes.txt").read_text() == "mine"
 
 
-@pytest.mark.skipif(not (SHARED_ASSETS / "hdri").is_dir(), reason="shared CC0 assets not present")
+@assets_mark("hdri")
 def test_a_real_hdri_environment_renders(tmp_path):
     hdr = SHARED_ASSETS / "hdri" / "potsdamer_platz_1k.hdr"
     out = tmp_path / "hdri"
@@ -273,7 +273,7 @@ def steps():
     s = np.concatenate(out)
     return [float((s < 0.05).mean()), float(np.percentile(s, 99)), int(s.size)]
 res = {'smooth': steps()}
-for car in r._cars.values():
+for car in r.cars.values():
     for o in car.objects.values():
         o.data.shade_flat()
 res['flat'] = steps()

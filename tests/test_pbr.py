@@ -53,8 +53,8 @@ def test_rgb_is_finite_nonnegative_and_the_car_casts_a_shadow(pairs):
     rgb = layers["rgb"]
     assert np.isfinite(rgb).all() and (rgb >= 0).all() and rgb.mean() > 0.01
     # the same view without the car: the ground there is lit; with the car, part of it is in shadow
-    r._set_environment(r._env_image(d["env"]))
-    r._place(d)  # the fixture rendered other samples since
+    r.set_environment(r.env_image(d["env"]))
+    r.place(d)  # the fixture rendered other samples since
     r.show(None)
     try:
         with_car = rgb.mean(axis=-1)

@@ -71,7 +71,7 @@ class CycleGAN(nn.Module):
     def discriminator_modules(self):
         return {"D_img": self.D_img, "D_intr": self.D_intr}
 
-    def render(self, m, **_):
+    def render(self, m, generator=None):
         return self.G_render(m)
 
     def decompose(self, img):

@@ -17,18 +17,14 @@ from .config import Config, config_from_dict
 from .data import IntrinsicsData, RealImages
 from .loop import _save_png, to_display
 from .model import build_model
+from .run_folder import RunFolder
 
 
 def load_run_options(run_dir: Path) -> tuple[dict, Config]:
     """training_options.json of a run folder and its config, or a one-line error."""
-    opts_path = Path(run_dir) / "training_options.json"
-    if not opts_path.exists():
-        raise CheckpointError(f"--run {run_dir}: not a run folder (no training_options.json)")
-    try:
-        opts = json.loads(opts_path.read_text(encoding="utf-8"))
-        return opts, config_from_dict(opts["config"])
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
-        raise CheckpointError(f"{opts_path}: unreadable or incomplete ({exc})") from None
+    run = RunFolder(run_dir)
+    opts = run.options()
+    return opts, config_from_dict(opts["config"])
 
 
 def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None) -> tuple[Config, torch.nn.Module, int]:
@@ -40,7 +36,7 @@ def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None)
         state = read_state(Path(checkpoint))
         load_weights(Path(checkpoint), model)
     else:
-        state, path, skipped = load_newest(run_dir / "checkpoints", model)
+        state, path, skipped = load_newest(RunFolder(run_dir).checkpoints, model)
         for why in skipped:
             print(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
         if state is None:

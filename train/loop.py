@@ -1,12 +1,6 @@
-"""The training loop: run folders, logging, grids, checkpoints, exact resume, multi-process.
+"""The training loop: setup, data, logging, grids, checkpoints, exact resume, multi-process.
 
-A run folder (in the manner of stylegan2-ada's) holds:
-  training_options.json   the resolved config and data paths: the run is resumed from it
-  stats.jsonl             every logged loss, one JSON row per logging step
-  events.out.tfevents.*   the same scalars for TensorBoard
-  grids/step_XXXXXXXX.png sample grids at fixed inputs
-  checkpoints/            safetensors weights + JSON state, `latest.json` names the newest
-Multi-GPU / multi-node: run under `torchrun`; each process takes its own slice of every
+The run folder's layout belongs to `train.run_folder.RunFolder`. Multi-GPU / multi-node: run under `torchrun`; each process takes its own slice of every
 global batch and gradients are averaged with one flattened all-reduce per network group.
 """
 from __future__ import annotations
@@ -31,6 +25,7 @@ from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict
 from .data import IntrinsicsData, RealImages, StepSampler, infinite_loader
 from .model import build_model
+from .run_folder import RunFolder
 
 
 class NonFiniteLoss(RuntimeError):
@@ -148,17 +143,6 @@ def _resolve(flag: str, device: str) -> bool:
     return flag == "on" or (flag == "auto" and device.startswith("cuda"))
 
 
-def read_options(run_dir: Path) -> dict:
-    """training_options.json of a run, or a one-line error naming it."""
-    path = Path(run_dir) / "training_options.json"
-    try:
-        opts = json.loads(path.read_text(encoding="utf-8"))
-        opts["config"], opts["intrinsics"], opts["real"]  # noqa: B018  (all three must be there)
-        return opts
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{path}: truncated or corrupt ({exc}); remove the run folder or restore the file") from None
-
-
 def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None) -> tuple[Config, dict]:
     """New run: check the data, then write training_options.json. Existing run: read it (the run resumes).
 
@@ -166,11 +150,11 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
     folder that refuses the corrected command. A folder whose run has no checkpoint yet holds
     nothing to resume and takes a new config.
     """
-    opts_path = run_dir / "training_options.json"
-    if opts_path.exists():
-        opts = read_options(run_dir)
+    run = RunFolder(run_dir)
+    if run.exists():
+        opts = run.options()
         saved = config_from_dict(opts["config"])
-        started = latest_checkpoint(run_dir / "checkpoints") is not None
+        started = latest_checkpoint(run.checkpoints) is not None
         changed = cfg is not None and cfg.to_dict() != saved.to_dict()
         moved = [k for k, given in (("intrinsics", intrinsics), ("real", real))
                  if given and str(Path(given).resolve()) != opts[k]]
@@ -191,8 +175,8 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
     check_data(cfg, intrinsics, real)
     opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve())}
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "stats.jsonl").unlink(missing_ok=True)  # from a start that never reached a checkpoint
-    atomic_write_json(opts_path, opts)
+    run.stats_path.unlink(missing_ok=True)  # from a start that never reached a checkpoint
+    atomic_write_json(run.options_path, opts)
     return cfg, opts
 
 
@@ -259,23 +243,15 @@ def build_optimisation(cfg: Config, model) -> tuple[list, list, dict, dict]:
 class StatsLog:
     """stats.jsonl and TensorBoard scalars of the main process; rows after `start` are dropped on resume."""
 
-    def __init__(self, run_dir: Path, start: int, enabled: bool):
-        self.path, self.writer = run_dir / "stats.jsonl", None
+    def __init__(self, run: RunFolder, start: int, enabled: bool):
+        self.path, self.writer = run.stats_path, None
         if not enabled:
             return
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer = SummaryWriter(str(run_dir), purge_step=start)
-        if self.path.exists():
-            rows = []
-            for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
-                try:
-                    row = json.loads(line)
-                except json.JSONDecodeError:
-                    continue  # a torn line from a killed run: its step is re-run anyway
-                if isinstance(row, dict) and isinstance(row.get("step"), int) and row["step"] <= start:
-                    rows.append(row)
-            atomic_write_json_lines(self.path, rows)
+        self.writer = SummaryWriter(str(run.root), purge_step=start)
+        if self.path.exists():  # torn lines and rows logged after the resumed checkpoint go
+            atomic_write_json_lines(self.path, run.stats(up_to=start))
 
     def log(self, step: int, lr: float, logs: dict) -> None:
         if self.writer is None:
@@ -319,7 +295,8 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     model = build_model(cfg).to(device)
     g_params, d_params, optimizers, schedulers = build_optimisation(cfg, model)
     opt_g, opt_d = optimizers["G"], optimizers.get("D")
-    ckpt_dir = run_dir / "checkpoints"
+    run = RunFolder(run_dir)
+    ckpt_dir = run.checkpoints
     state, resumed_from, skipped = load_newest(ckpt_dir, model, optimizers, schedulers)
     for why in skipped if dd.main else []:
         tqdm.write(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
@@ -348,7 +325,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     fixed_i = torch.stack([reals[(i, False)] for i in range(k)]).to(device)
 
     # ---------------------------------------------------------------- the step loop
-    stats = StatsLog(run_dir, start, dd.main)
+    stats = StatsLog(run, start, dd.main)
     bar = tqdm(total=end, initial=start, unit="it", desc=run_dir.name, disable=not (progress and dd.main),
                dynamic_ncols=True)
 
@@ -386,7 +363,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
                 if step % cfg.run.log_every == 0 or step == end:
                     stats.log(step, schedulers["G"].get_last_lr()[0], logs)
                 if dd.main and (step % cfg.run.grid_every == 0 or step == end):
-                    write_grid(model, fixed_m, fixed_i, run_dir / "grids" / f"step_{step:08d}.png", autocast)
+                    write_grid(model, fixed_m, fixed_i, run.grid_path(step), autocast)
                 stopping = _any_rank(stop.signal is not None, dd.world, device)
                 if step % cfg.run.checkpoint_every == 0 or step == end or stopping:
                     checkpoint(step)

@@ -11,6 +11,8 @@ samples independent), which keeps the multi-process gradient all-reduce simple.
 """
 from __future__ import annotations
 
+from typing import Protocol, runtime_checkable
+
 import torch
 from torch import nn
 
@@ -19,6 +21,39 @@ from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss
 from .networks import Decomposer, MultiscaleDiscriminator, init_weights, make_renderer_net
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
+
+
+@runtime_checkable
+class ModelKind(Protocol):
+    """What every model kind implements (the Intrinsic Autoencoder, CycleGAN, MUNIT, the oracle).
+
+    The training loop, inference commands, grids and the report use nothing else, so a new
+    baseline is a class with these methods and a config section of its own (train.config).
+    """
+
+    def generator_modules(self) -> dict[str, nn.Module]:
+        """Networks updated by the generator step (one optimiser)."""
+
+    def discriminator_modules(self) -> dict[str, nn.Module]:
+        """Networks updated by the discriminator step; empty for a model without one."""
+
+    def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor, everything: bool = False) -> dict[str, torch.Tensor]:
+        """All outputs one training step needs; `everything` adds those only pictures show."""
+
+    def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        """The generators' loss and its logged terms ("G/...")."""
+
+    def discriminator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        """The discriminators' loss on detached fakes and its logged terms ("D/...")."""
+
+    def visuals(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """M_s, R(M_s), H(R(M_s)), I_r, H(I_r), R(H(I_r)) where the model has them (for grids)."""
+
+    def render(self, m: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """9-channel intrinsics (network space) -> image; `generator` seeds random style codes."""
+
+    def decompose(self, img: torch.Tensor) -> torch.Tensor:
+        """Image -> 9-channel intrinsics (network space)."""
 
 
 class IntrinsicAutoencoder(nn.Module):
@@ -45,7 +80,7 @@ class IntrinsicAutoencoder(nn.Module):
         """The channels of a 9-channel stack that R takes (ablation `model.inputs`)."""
         return torch.cat([m[:, CHANNELS[c]] for c in self.inputs], dim=1)
 
-    def render(self, m: torch.Tensor, **_) -> torch.Tensor:
+    def render(self, m: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.R(self.select(m))
 
     def decompose(self, img: torch.Tensor) -> torch.Tensor:
@@ -155,7 +190,7 @@ class SupervisedOracle(IntrinsicAutoencoder):
         raise RuntimeError("the supervised oracle has no discriminators")
 
 
-def build_model(cfg: Config) -> nn.Module:
+def build_model(cfg: Config) -> ModelKind:
     if cfg.model.kind == "iae":
         return IntrinsicAutoencoder(cfg)
     if cfg.model.kind == "oracle":
