@@ -31,7 +31,14 @@ def _scratch_dir() -> str:
 
 
 class SampleRenderer:
+    """One per process at a time: a new one resets Blender and retires the one before it."""
+
+    _current: "SampleRenderer | None" = None
+
     def __init__(self, recipe: Recipe, threads: int = 0):
+        if SampleRenderer._current is not None:
+            SampleRenderer._current.close()
+        SampleRenderer._current = self
         self.recipe = recipe
         self.scene = S.reset_scene()
         self._configure(threads)
@@ -150,8 +157,16 @@ class SampleRenderer:
                 other.set_visible(other is car)
             self._visible = car.name if car else None
 
+    @property
+    def alive(self) -> bool:
+        """False once a newer renderer has reset Blender's scene under this one."""
+        return SampleRenderer._current is self
+
     def render_current(self) -> dict[str, np.ndarray]:
         """Render the scene as it is set up now and return its layers."""
+        if not self.alive:
+            raise RuntimeError("this SampleRenderer was replaced by a newer one: Blender holds one scene per "
+                               "process, so make a new renderer")
         with quiet_stdout():
             bpy.ops.render.render(write_still=True)
         return self._read_passes()

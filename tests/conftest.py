@@ -42,9 +42,10 @@ def tiny_intrinsics(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def renderer():
-    """An in-process intrinsics renderer at 128x64 (imports bpy once for the session)."""
+    """An in-process intrinsics renderer at 128x64, fresh for each test module: Blender holds one
+    scene per process, so a renderer made by another module would have replaced it."""
     from blender_gen.recipe import Recipe
     from blender_gen.render import SampleRenderer
 

@@ -20,7 +20,7 @@ W, H = 128, 64
 @pytest.fixture(scope="module")
 def pairs():
     """Samples 0..2 of a PBR recipe and of the intrinsics recipe with the same options."""
-    from blender_gen.render import make_renderer
+    from blender_gen.generate import make_renderer
 
     out = {}
     for kind in ("intrinsics", "pbr"):
