@@ -20,7 +20,8 @@ import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from blender_gen.conversions import linear_to_srgb, preview_srgb8  # noqa: E402
-from blender_gen.dataset import INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset  # noqa: E402
+from blender_gen.dataset import (INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset,  # noqa: E402
+                                 save_png)
 from train.config import Config  # noqa: E402
 from train.run_folder import RunFolder  # noqa: E402
 
@@ -190,6 +191,7 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
         entries += _reference_entries(Path(opts["intrinsics"]), data, real, Path(intrinsics), out, size, limit, grid,
                                       feat, real_feats[size], progress)
     datasets = [v.summary() for v in sets.values()]
+    save_png(out / "render_grid.png", render_grid_png(entries, Path(intrinsics), grid))
     page = _html(entries, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
     atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
@@ -199,6 +201,30 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
                                                             for e in entries if e.get("reference")],
                                              "datasets": datasets, "warnings": warnings})
     return out / "report.html"
+
+
+def render_grid_png(entries, intrinsics: Path, grid: int, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
+    """One picture for people: per row the same unseen intrinsics (normal, albedo, reflection),
+    then every run's render of them, each column labelled."""
+    from PIL import ImageDraw
+
+    renderers = [e for e in entries if e["rendered"]]
+    ds = open_dataset(intrinsics, kinds=("intrinsics", "pbr"))
+    w, h = tile
+    labels = ["normal", "albedo", "reflection"] + [e["label"] for e in renderers]
+    n = min(grid, len(ds))
+    sheet = Image.new("RGB", (w * len(labels), 18 + h * n), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for c, text in enumerate(labels):
+        draw.text((c * w + 4, 3), text[:40], fill=(0, 0, 0))
+    for j in range(n):
+        layers = ds.load(j, INTRINSIC_LAYERS)
+        tiles = [Image.fromarray(preview_srgb8(k, layers[k])) for k in INTRINSIC_LAYERS]
+        tiles += [Image.open(e["rendered"][j]).convert("RGB") if j < len(e["rendered"]) else Image.new("RGB", tile)
+                  for e in renderers]
+        for c, t in enumerate(tiles):
+            sheet.paste(t.resize(tile, Image.Resampling.BILINEAR), (c * w, 18 + j * h))
+    return np.asarray(sheet)
 
 
 def _table1(entries) -> tuple[list[str], list[list[str]]]:

@@ -145,6 +145,10 @@ def test_report_has_tables_like_the_papers(report):
     const = refs["Constant predictor"]["dec"]
     assert 0 < const["normal_mean_deg"] < 90 and const["samples"] == 3
     assert refs["Albedo copy (no renderer)"]["fid"]["fake_images"] == 3
+    from PIL import Image
+
+    grid = Image.open(out / "render_grid.png")  # 3 intrinsics + 2 runs + the albedo copy, 2 rows of 128 px
+    assert grid.size == (256 * 6, 18 + 2 * 128)
     results = json.loads((out / "results.json").read_text())["runs"]
     assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
     assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)
