@@ -359,24 +359,38 @@ def verify_rows(root: Path, rows: list[dict]) -> tuple[list[dict], list[tuple[di
 
 
 class DatasetWriter:
-    """Writes a dataset in one process: dataset.json first (incomplete), then per sample its
-    EXR (atomic), its checksum and its manifest row, and finally the count and `complete`."""
+    """The one writer of the format: dataset.json first (incomplete; the rows already finished
+    when resuming are kept, a torn last line dropped), then per sample its EXR (atomic), its
+    checksum and its manifest row, and at the end the count and `complete`.
 
-    def __init__(self, root: Path, info: dict):
+    Used by the generator (whose worker processes write the EXRs: `append` their rows), by
+    `decompose` and by the reference rows.
+    """
+
+    def __init__(self, root: Path, info: dict, rows: list[dict] | None = None):
         self.root = Path(root)
         (self.root / "samples").mkdir(parents=True, exist_ok=True)
-        self.info = {"format_version": FORMAT_VERSION, **info, "count": 0, "complete": False}
+        self.manifest = self.root / "manifest.jsonl"
+        write_manifest(self.manifest, rows or [])
+        self.info = {"format_version": FORMAT_VERSION, **info, "count": len(rows or []), "complete": False}
         atomic_write_json(self.root / "dataset.json", self.info)
 
     def add(self, index: int, layers: dict[str, np.ndarray], **row) -> dict:
+        """Write a sample's EXR and append its row."""
         rel = sample_filename(index)
         write_exr(self.root / rel, layers)
-        full = {"index": index, "file": rel, "sha256": sha256_file(self.root / rel), **row}
-        append_manifest(self.root / "manifest.jsonl", full)
-        self.info["count"] += 1
-        return full
+        return self.append({"index": index, "file": rel, "sha256": sha256_file(self.root / rel), **row})
 
-    def finish(self) -> dict:
-        self.info["complete"] = self.info["count"] == self.info.get("count_requested", self.info["count"])
+    def append(self, row: dict) -> dict:
+        """Append the row of a sample whose file is already whole."""
+        append_manifest(self.manifest, row)
+        self.info["count"] += 1
+        return row
+
+    def finish(self, expected: int | None = None) -> dict:
+        """Record the count (from the manifest as it is on disk) and whether all `expected` are there."""
+        self.info["count"] = len(read_manifest(self.manifest))
+        expected = self.info.get("count_requested", self.info["count"]) if expected is None else expected
+        self.info["complete"] = self.info["count"] == expected
         atomic_write_json(self.root / "dataset.json", self.info)
         return self.info

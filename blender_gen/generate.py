@@ -18,9 +18,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .dataset import (FORMAT_VERSION, KIND_LAYERS, MAX_INDEX, DatasetError, append_manifest, atomic_target,
-                      atomic_write_json, folder_is_empty, locked_folder, read_info, read_manifest, verify_rows,
-                      write_manifest)
+from .dataset import (KIND_LAYERS, MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
+                      folder_is_empty, locked_folder, read_info, read_manifest, verify_rows, write_manifest)
 from .recipe import Recipe, identity_diff
 
 
@@ -52,10 +51,10 @@ def software_versions() -> dict:
     return versions
 
 
-def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]) -> tuple[dict, list[dict]]:
+def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]) -> tuple[DatasetWriter, list[dict]]:
     """Create or re-open `out`; refuse a folder that holds another recipe or other files.
 
-    Returns dataset.json's content and the manifest rows whose files verify.
+    Returns the dataset's writer and the manifest rows whose files verify.
     """
     out = Path(out)
     identity = recipe.identity()
@@ -78,23 +77,17 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
     good, bad = verify_rows(out, rows)
     for row, why in bad:
         print(f"redoing sample {row['index']}: {why}", file=sys.stderr)
-    # Rewritten every time: this also drops a torn last line that a killed append left.
-    write_manifest(out / "manifest.jsonl", good)
-    info = {
-        "format_version": FORMAT_VERSION,
+    writer = DatasetWriter(out, {
         "kind": recipe.kind,
         "resolution": [recipe.width, recipe.height],
         "seed": recipe.seed,
         "count_requested": count,
-        "count": len(good),
         "shard": list(shard),
-        "complete": False,
         "software": software_versions(),
         "recipe": identity,
         "layers": list(KIND_LAYERS[recipe.kind]),
-    }
-    atomic_write_json(out / "dataset.json", info)
-    return info, good
+    }, rows=good)
+    return writer, good
 
 
 # ------------------------------------------------------------------- worker processes
@@ -175,29 +168,25 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
 
 def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_t: tuple[int, int],
                      progress: bool) -> dict:
-    info, done_rows = prepare_output(out, recipe, count, shard_t)
+    writer, done_rows = prepare_output(out, recipe, count, shard_t)
     done = {r["index"] for r in done_rows}
     todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]
     total = len(done) + len(todo)
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=total, initial=len(done), unit="sample", desc=f"{recipe.kind} {out.name}",
                disable=not progress, smoothing=0.1, dynamic_ncols=True)
-    manifest = out / "manifest.jsonl"
     started = time.perf_counter()
     rendered = 0
 
-    def finish() -> None:
-        rows = read_manifest(manifest)
-        info["count"] = len(rows)
-        info["complete"] = len(rows) == total
-        atomic_write_json(out / "dataset.json", info)
+    def finish() -> dict:
+        return writer.finish(expected=total)
 
     try:
         if todo and workers == 1:
             renderer = make_renderer(recipe, threads)
             try:
                 for i in todo:
-                    append_manifest(manifest, renderer.render(i, out))
+                    writer.append(renderer.render(i, out))
                     rendered += 1
                     bar.update()
             finally:
@@ -210,7 +199,7 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
             try:
                 jobs = [(i, str(out)) for i in todo]
                 for row in pool.map(_render_one, jobs, chunksize=recipe.views_per_car):
-                    append_manifest(manifest, row)
+                    writer.append(row)
                     rendered += 1
                     bar.update()
             except BaseException:
@@ -225,7 +214,7 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
             pass
         raise
     bar.close()
-    finish()
+    info = finish()
     elapsed = time.perf_counter() - started
     info["_rendered"], info["_seconds"] = rendered, elapsed
     return info
