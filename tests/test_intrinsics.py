@@ -132,29 +132,33 @@ def test_manifest_rows_describe_each_sample(tiny_intrinsics):
     assert info["resolution"] == [64, 32] and info["recipe"]["seed"] == 3
 
 
-def test_resume_after_kill_finishes_with_identical_files(tiny_intrinsics, tmp_path):
+def test_resume_after_kill_finishes_with_identical_files(tmp_path):
+    n = 40  # enough samples that a kill after the first finished one always lands mid-way
+    recipe = ["--count", str(n), "--resolution", "64x32", "--seed", "3", "--quiet"]
+    whole = tmp_path / "whole"
+    run_gen("intrinsics", "--out", str(whole), *recipe)
     out = tmp_path / "killed"
-    args = [sys.executable, "-m", "blender_gen.cli", "intrinsics", "--out", str(out), "--count", "4",
-            "--resolution", "64x32", "--seed", "3", "--quiet"]
-    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen([sys.executable, "-m", "blender_gen.cli", "intrinsics", "--out", str(out), *recipe],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while time.time() < deadline and len(read_manifest(out / "manifest.jsonl")) < 1:
-        time.sleep(0.05)
+        time.sleep(0.005)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     before = read_manifest(out / "manifest.jsonl")
-    assert 1 <= len(before) < 4, "killed mid-way"
+    assert 1 <= len(before) < n, "killed mid-way"
     # what a killed writer can leave: a torn manifest line and a half-written temporary file
+    missing = next(i for i in range(n) if i not in {r["index"] for r in before})
     with open(out / "manifest.jsonl", "a") as fh:
-        fh.write('{"index": 3, "file": "samples/00')
-    (out / "samples" / ".000003.exr.tmp999").write_bytes(b"partial")
+        fh.write(f'{{"index": {missing}, "file": "samples/00')
+    (out / "samples" / f".{missing:06d}.exr.tmp999").write_bytes(b"partial")
     kept = {r["file"]: os.stat(out / r["file"]).st_mtime_ns for r in before}
-    run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet")
-    assert _files(out) == _files(tiny_intrinsics)
+    run_gen("intrinsics", "--out", str(out), *recipe)
+    assert _files(out) == _files(whole)
     assert not list((out / "samples").glob(".*"))
     for f, mtime in kept.items():
         assert os.stat(out / f).st_mtime_ns == mtime, f"{f} was finished and must not be redone"
-    assert [r["index"] for r in read_manifest(out / "manifest.jsonl")] == [0, 1, 2, 3]
+    assert sorted(r["index"] for r in read_manifest(out / "manifest.jsonl")) == list(range(n))
 
 
 def test_a_corrupted_sample_is_detected_and_redone(tiny_intrinsics, tmp_path):
