@@ -367,7 +367,7 @@ def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets
 body {{ font-family: sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
 th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: center; font-size: 13px; }}
-td img {{ max-width: 256px; display: block; }}
+td img {{ width: 256px; display: block; }}  /* renders at training size shown as large as the inputs */
 h3 {{ margin-bottom: 0.2em; }}
 .warning {{ background: #fff3cd; border: 1px solid #e0b000; padding: 6px 10px; }}
 </style>
