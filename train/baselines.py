@@ -224,13 +224,13 @@ class MunitAutoEncoder(nn.Module):
         self.decoder = MunitDecoder(self.content.out_dim, in_ch, m.n_down, m.n_res, m.style_dim, m.mlp_dim)
 
 
-class MunitDiscriminator(nn.Module):
+class MunitDiscriminator(MultiscaleDiscriminator):
     """The reference's MsImageDis: per scale, a 4x4 stride-2 reflect-padded conv with LeakyReLU,
     n_layers - 1 more doubling the width, then a 1x1 conv to one logit map; no norm. Scales
-    are 3x3 average pools (stride 2, padding 1, padding not counted)."""
+    are 3x3 average pools (stride 2, padding 1, padding not counted), as in the parent class."""
 
     def __init__(self, in_ch: int, ndf: int, n_layers: int, scales: int):
-        super().__init__()
+        nn.Module.__init__(self)  # the parent's per-scale PatchGANs are replaced by the reference's nets
 
         def net() -> nn.Sequential:
             layers, ch = [], in_ch
@@ -241,14 +241,6 @@ class MunitDiscriminator(nn.Module):
             return nn.Sequential(*layers, nn.Conv2d(ch, 1, 1))
 
         self.nets = nn.ModuleList(net() for _ in range(scales))
-
-    def forward(self, x):
-        out = []
-        for i, net in enumerate(self.nets):
-            if i:
-                x = F.avg_pool2d(x, 3, stride=2, padding=1, count_include_pad=False)
-            out.append(net(x))
-        return out
 
 
 class MUNIT(nn.Module):
