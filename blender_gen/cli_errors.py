@@ -11,13 +11,12 @@ import os
 from contextlib import contextmanager
 from typing import Iterator
 
-import click
-
 DEBUG_ENV = "IAE_DEBUG"
 EXPECTED: tuple[type[BaseException], ...] = (ValueError, OSError)
 
 
 def first_line(exc: BaseException) -> str:
+    """An exception as one line: an OSError's file and reason, else its message's first line."""
     if isinstance(exc, OSError) and exc.strerror:
         return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
     text = str(exc).strip()
@@ -26,6 +25,8 @@ def first_line(exc: BaseException) -> str:
 
 @contextmanager
 def one_line_errors(expected: tuple[type[BaseException], ...] = EXPECTED) -> Iterator[None]:
+    import click
+
     try:
         yield
     except click.ClickException:

@@ -239,8 +239,12 @@ def append_manifest(path: Path, row: dict) -> None:
         raise DatasetWriteError(f"cannot write {path}: {exc.strerror or exc}") from exc
 
 
-def write_manifest(path: Path, rows: list[dict]) -> None:
+def write_json_lines(path: Path, rows: list[dict]) -> None:
+    """One JSON object per line, written atomically (manifests, training stats)."""
     atomic_write_bytes(Path(path), "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows).encode())
+
+
+write_manifest = write_json_lines
 
 
 # --------------------------------------------------------------------------- datasets

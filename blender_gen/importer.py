@@ -18,6 +18,7 @@ import numpy as np
 
 from .geometry import Mesh
 from .quiet import quiet_stdout
+from .cli_errors import first_line
 from .rules import MODEL_SUFFIXES, SPLIT_PARTS, Rules, RulesError, face_part
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 
@@ -94,7 +95,7 @@ def import_model(path: str | Path, rules: Rules) -> ImportedModel:
     try:
         objects = _read_objects(path)
     except RuntimeError as exc:  # Blender's importers report a bad file as RuntimeError
-        raise RulesError(f"{path}: cannot be imported ({str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r})") from None
+        raise RulesError(f"{path}: cannot be imported ({first_line(exc)})") from None
     try:
         meshes = [o for o in objects if o.type == "MESH"]
         if not meshes:

@@ -63,8 +63,10 @@ class InceptionFeatures(torch.nn.Module):
         try:
             self.net = torch.jit.load(str(weights), map_location="cpu").eval()
         except (RuntimeError, ValueError, OSError) as exc:
+            from blender_gen.cli_errors import first_line
+
             raise InceptionWeightsError(f"{weights}: not a TorchScript file of the FID Inception network "
-                                        f"({str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r})") from None
+                                        f"({first_line(exc)})") from None
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:

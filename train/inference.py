@@ -1,7 +1,6 @@
 """Inference with a trained run: R as a renderer, H as a decomposer writing datasets."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 

@@ -20,7 +20,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from blender_gen.dataset import atomic_write_bytes, atomic_write_json, save_png
+from blender_gen.dataset import atomic_write_json, save_png, write_json_lines
 from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict
 from .data import IntrinsicsData, RealImages, StepSampler, infinite_loader
@@ -208,7 +208,9 @@ class StopRequest:
         return self
 
     def _handle(self, signum, frame) -> None:
-        if self.signal is not None and signum == 2:
+        import signal
+
+        if self.signal is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.signal = signum
 
@@ -251,7 +253,7 @@ class StatsLog:
 
         self.writer = SummaryWriter(str(run.root), purge_step=start)
         if self.path.exists():  # torn lines and rows logged after the resumed checkpoint go
-            atomic_write_json_lines(self.path, run.stats(up_to=start))
+            write_json_lines(self.path, run.stats(up_to=start))
 
     def log(self, step: int, lr: float, logs: dict) -> None:
         if self.writer is None:
@@ -264,10 +266,6 @@ class StatsLog:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
-
-
-def atomic_write_json_lines(path: Path, rows: list[dict]) -> None:
-    atomic_write_bytes(path, "".join(json.dumps(r) + "\n" for r in rows).encode())
 
 
 def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None, real: str | None = None,
