@@ -58,6 +58,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_train.py --kinds iae cyclegan munit
 	$(PY) bench/bench_train.py
 	$(PY) bench/bench_eval.py
+	$(PY) bench/bench_export.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache

@@ -6,14 +6,14 @@ up; `rotation` holds the camera's right, up and back axes as columns (world spac
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 
-
 class CameraError(ValueError):
     """The camera ranges admit no view that keeps the car in frame."""
+
 
 @dataclass(frozen=True)
 class CameraRanges:
@@ -138,3 +138,44 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, width: int, heig
         f"{ranges.radius_min}..{ranges.radius_max} m and focal {ranges.focal_min}..{ranges.focal_max} mm; "
         "widen the ranges or lower --min-coverage"
     )
+
+
+@dataclass(frozen=True)
+class Orbit:
+    """A camera path around one car (`iae-gen turntable`): frame k of n sits at angle
+    start + 360 k / n degrees, `radius` m from the car's centre and `height` m above the ground,
+    looking at the centre, with one focal length (Blender's defaults: no roll, fixed seed)."""
+
+    frames: int
+    radius: float = 6.0
+    height: float = 1.6
+    focal: float = 35.0  # mm, 36 mm wide sensor
+    start_deg: float = 0.0
+    paint: str | None = None  # None: drawn once from the seed
+    env_rotation_deg: float | None = None  # None: drawn once from the seed
+
+    def validate(self) -> None:
+        if self.frames < 1:
+            raise ValueError(f"--frames {self.frames}: expected at least 1")
+        if not self.radius > 0:
+            raise ValueError(f"--radius {self.radius}: expected a distance in metres > 0")
+        if not self.focal > 0:
+            raise ValueError(f"--focal {self.focal}: expected a focal length in mm > 0")
+
+
+def orbit_pose(points: np.ndarray, orbit: Orbit, frame: int, width: int, height: int,
+               ranges: CameraRanges = CameraRanges()) -> CameraPose:
+    """Camera of one frame of an orbit; a frame that cannot show the whole car is an error."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    a = np.deg2rad(orbit.start_deg + 360.0 * frame / orbit.frames)
+    loc = np.array([centre[0] + orbit.radius * np.cos(a), centre[1] + orbit.radius * np.sin(a), orbit.height])
+    pose = CameraPose(location=tuple(float(v) for v in loc),
+                      rotation=tuple(tuple(float(v) for v in row) for row in look_at(loc, centre)),
+                      target=tuple(float(v) for v in centre), focal_length=float(orbit.focal),
+                      sensor_width=ranges.sensor_width)
+    if not view_ok(points, pose, width, height, replace(ranges, min_coverage=0.0)):
+        raise CameraError(f"turntable frame {frame}: the car does not fit the {width}x{height} frame at "
+                          f"--radius {orbit.radius} m, --height {orbit.height} m with --focal {orbit.focal} mm; "
+                          "increase --radius or lower --focal")
+    return pose

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import re
 import sys
 from pathlib import Path
 
 import click
 
-from .camera import CameraRanges
+from .camera import CameraRanges, Orbit
 from .cli_errors import one_line_errors
 from .dataset import MAX_INDEX
 from .envmap import PROCEDURAL_SETS
@@ -185,6 +186,59 @@ def pbr(**o) -> None:
     Table-3 evaluation set is `--cars procedural:train --envmap procedural` with a new --seed.
     """
     _run(_build_recipe("pbr", "procedural:heldout", 8, o, default_env="procedural:heldout"), o)
+
+
+@main.command()
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Dataset folder; frame k is sample k (re-running resumes it).")
+@click.option("--car", "car", required=True, help="One catalogue car (see `iae-gen cars`) or a model file with --car-rules.")
+@click.option("--car-rules", type=click.Path(dir_okay=False), default=None)
+@click.option("--frames", required=True, type=click.IntRange(1, MAX_INDEX + 1), help="Frames in one full orbit.")
+@click.option("--radius", default=Orbit.radius, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Camera distance from the car's centre (m).")
+@click.option("--height", "cam_height", default=Orbit.height, show_default=True, type=float, help="Camera height (m).")
+@click.option("--focal", default=Orbit.focal, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Focal length (mm, 36 mm sensor).")
+@click.option("--start", default=0.0, show_default=True, type=float, help="Angle of the first frame (degrees).")
+@click.option("--envmap", default=None, help="Equirectangular .hdr/.exr or a built-in sky set (default: procedural).")
+@click.option("--env-rotation", default=None, type=float, help="Environment rotation (degrees; default: drawn from --seed).")
+@click.option("--paint", default=None, help="Body paint by name (default: drawn from --seed).")
+@click.option("--pbr", is_flag=True, help="Render the Cycles image too (a `pbr` dataset): Cycles' video of the same path.")
+@click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel (--pbr: 8).")
+@click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256))
+@click.option("--quiet", is_flag=True)
+def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, envmap, env_rotation, paint, pbr, samples,
+              resolution, seed, workers, quiet) -> None:
+    """Intrinsics (or, with --pbr, Cycles images and intrinsics) of a camera orbiting one car.
+
+    `iae-train render --run RUN --intrinsics OUT --out DIR --video R.mp4` turns them into R's video;
+    `iae-eval flicker` compares its frame-to-frame change with Cycles' on the same path.
+    """
+    from .materials import load_materials
+
+    if paint is not None and paint not in load_materials().paints:
+        _fail(f"--paint {paint!r}: no such paint; expected one of {', '.join(load_materials().paints)}")
+    if "," in car:
+        _fail(f"--car {car!r}: a turntable shows one car")
+    cars = check_cars((car,), car_rules)
+    if not Path(cars[0]).suffix:
+        from .cars import load_catalogue, select_cars
+
+        chosen = select_cars(load_catalogue(), cars[0])
+        if len(chosen) != 1:
+            _fail(f"--car {car!r}: selects {len(chosen)} cars; name one (see `iae-gen cars`)")
+    orbit = Orbit(frames=frames, radius=radius, height=cam_height, focal=focal, start_deg=start, paint=paint,
+                  env_rotation_deg=env_rotation)
+    o = {"out": out, "count": frames, "seed": seed, "resolution": resolution, "cars": (car,), "car_rules": car_rules,
+         "envmaps": (envmap,) if envmap else (), "samples": samples, "workers": workers, "shard": None,
+         "radius_min": CameraRanges.radius_min, "radius_max": CameraRanges.radius_max,
+         "height_min": CameraRanges.height_min, "height_max": CameraRanges.height_max,
+         "focal_range": f"{CameraRanges.focal_min:g}-{CameraRanges.focal_max:g}",
+         "min_coverage": CameraRanges.min_coverage, "views_per_car": 1, "quiet": quiet}
+    recipe = _build_recipe("pbr" if pbr else "intrinsics", car, 8 if pbr else 1, o)
+    _run(replace(recipe, orbit=orbit), o)
 
 
 @main.command("cars")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import CameraRanges
+from .camera import CameraRanges, Orbit
 from .envmap import DEFAULT_SKY_VARIANTS, HELDOUT_SKY_VARIANTS, PROCEDURAL_PREFIX, PROCEDURAL_SETS
 
 KINDS = ("intrinsics", "pbr")
@@ -33,6 +33,8 @@ class Recipe:
     # Consecutive samples [k*v, (k+1)*v) share a car model (drawn at random per block):
     # swapping the model in Cycles costs about as much as rendering a view.
     views_per_car: int = 4
+    # A camera path around one car instead of random views (`iae-gen turntable`); None = random.
+    orbit: Orbit | None = None
 
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""

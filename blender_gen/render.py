@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import scene as S
-from .camera import sample_camera
+from .camera import orbit_pose, sample_camera
 from .cars import load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
@@ -139,6 +139,8 @@ class SampleRenderer:
     # ------------------------------------------------------------------ samples
     def draw(self, index: int) -> dict:
         """The random choices of sample `index` (deterministic in seed and index)."""
+        if self.recipe.orbit is not None:
+            return self._draw_orbit(index)
         seed = sample_seed(self.recipe.seed, index)
         rng = np.random.default_rng(seed)
         block = np.random.default_rng(block_seed(self.recipe.seed, index, self.recipe.views_per_car))
@@ -148,6 +150,22 @@ class SampleRenderer:
         rotation = float(rng.uniform(0.0, 360.0))
         car = self.car(spec)
         pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
+        return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
+
+    def _draw_orbit(self, frame: int) -> dict:
+        """Frame `frame` of a turntable: one car, paint and environment for every frame, and one
+        Cycles seed (Blender's default), so only the camera changes between frames."""
+        orbit = self.recipe.orbit
+        seed = sample_seed(self.recipe.seed, 0)
+        rng = np.random.default_rng(seed)
+        spec = self.car_specs[0]
+        drawn_paint = self.paints[int(rng.integers(len(self.paints)))]
+        paint = self.table.paints[orbit.paint] if orbit.paint else drawn_paint
+        env = self.env_names[int(rng.integers(len(self.env_names)))]
+        drawn_rotation = float(rng.uniform(0.0, 360.0))
+        rotation = drawn_rotation if orbit.env_rotation_deg is None else float(orbit.env_rotation_deg)
+        car = self.car(spec)
+        pose = orbit_pose(car.points, orbit, frame, self.recipe.width, self.recipe.height, self.recipe.camera)
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 
     def show(self, car: S.CarInstance | None) -> None:

@@ -132,6 +132,70 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
     click.echo((Path(out) / "report.md").read_text())
 
 
+@main.command()
+@click.option("--run", "runs", multiple=True, required=True, type=click.Path(path_type=Path),
+              help="Run folder whose R renders the path (repeatable).")
+@click.option("--path", "path", required=True, type=click.Path(path_type=Path),
+              help="Cycles frames of a camera path: `iae-gen turntable --pbr`.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the figures as JSON.")
+def flicker(runs, path, out) -> None:
+    """Temporal flicker: R's mean frame-to-frame change relative to Cycles' on the same camera path."""
+    from blender_gen.dataset import atomic_write_json
+
+    from .flicker import measure_flicker
+
+    with one_line_errors():
+        results = [measure_flicker(r, path) for r in runs]
+        if out:
+            atomic_write_json(out, results)
+    c = results[0]["cycles"]
+    click.echo(f"{path}: {c['frames']} frames; mean |frame(t+1) - frame(t)| in 8-bit sRGB units "
+               f"(ratio = renderer / Cycles; 1 = as steady as Cycles)")
+    click.echo(f"{'renderer':<40}{'whole frame':>12}{'car':>8}{'ratio':>8}{'ratio car':>10}")
+    click.echo(f"{'Cycles (reference)':<40}{c['whole_frame']:>12.2f}{c['car']:>8.2f}{1:>8.2f}{1:>10.2f}")
+    for r in results:
+        name = f"{Path(r['run']).name} (step {r['step']})"
+        click.echo(f"{name:<40}{r['renderer']['whole_frame']:>12.2f}{r['renderer']['car']:>8.2f}"
+                   f"{r['ratio_whole_frame']:>8.2f}{r['ratio_car']:>10.2f}")
+
+
+@main.command("ab-study")
+@click.option("--a", "a", required=True, type=click.Path(path_type=Path), help="Images of method A (e.g. `iae-train render` output).")
+@click.option("--b", "b", required=True, type=click.Path(path_type=Path), help="Images of method B.")
+@click.option("--real", type=click.Path(path_type=Path), default=None,
+              help="Real photos: adds A-vs-photo and B-vs-photo pairs (how often each method fools the viewer).")
+@click.option("--pairs", required=True, type=click.IntRange(1, 5000), help="Pairs of each comparison.")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--label-a", default="A", show_default=True, help="Name of method A in the summary.")
+@click.option("--label-b", default="B", show_default=True)
+@click.option("--height", default=256, show_default=True, type=click.IntRange(16, 4096),
+              help="Every image is shown at this height (re-encoded alike, so the format is no tell).")
+@click.option("--seed", default=0, show_default=True, type=int)
+def ab_study(a, b, real, pairs, out, label_a, label_b, height, seed) -> None:
+    """The paper's human A/B study: a self-contained HTML page of randomised image pairs."""
+    from .ab_study import build_study
+
+    with one_line_errors():
+        page = build_study(a, b, out, pairs, real, seed, label_a, label_b, height)
+    click.echo(f"{page}: open it in a browser, answer, download the answers; then `iae-eval ab-summary FILES`")
+
+
+@main.command("ab-summary")
+@click.argument("answers", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the summary as JSON.")
+def ab_summary(answers, out) -> None:
+    """Table-2-like ratios of one study's answer files, with Wilson 95% confidence intervals."""
+    from blender_gen.dataset import atomic_write_json
+
+    from .ab_study import format_summary, summarise
+
+    with one_line_errors():
+        s = summarise(list(answers))
+        if out:
+            atomic_write_json(out, s)
+    click.echo(format_summary(s))
+
+
 def _add_reproduce() -> None:
     from .reproduce import reproduce_cmd
 

@@ -119,6 +119,21 @@ def test_an_ablated_cycle_lets_no_input_of_its_domain_reach_the_generators(switc
     assert any(not torch.equal(c[n], d[n]) for n in c if n.startswith("H.")), "the full model does see both domains"
 
 
+@pytest.mark.parametrize("detach", [False, True])
+def test_cycle_detach_trains_only_the_second_network_of_each_cycle(detach):
+    torch.manual_seed(0)
+    model = IntrinsicAutoencoder(tiny_cfg(loss__cycle_detach=detach))
+    x9, x3 = torch.randn(2, 9, 32, 64).tanh(), torch.randn(2, 3, 32, 64).tanh()
+    for loss_name, first, second in (("dec", "H.", "R."), ("ren", "R.", "H.")):
+        model.zero_grad(set_to_none=True)
+        out = model.forward_all(x9, x3)
+        key, target = ("rec_I", "I_r") if loss_name == "dec" else ("rec_M", "M_s")
+        cycle_loss(out[key], out[target], 1 / 16).backward()
+        grads = {n: p.grad for n, p in model.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+        assert any(n.startswith(second) for n in grads), loss_name
+        assert any(n.startswith(first) for n in grads) != detach, loss_name  # detached: the first gets nothing
+
+
 def test_discriminator_step_never_moves_generators_and_vice_versa():
     torch.manual_seed(0)
     model = IntrinsicAutoencoder(tiny_cfg())

@@ -65,15 +65,22 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, device, quiet) 
 @click.option("--style-seed", default=0, show_default=True, type=int, help="Seed of random style codes (MUNIT).")
 @click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N samples (default: all).")
 @click.option("--device", default="auto", show_default=True)
+@click.option("--video", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the frames, in sample order, as a video (.mp4 or .gif): e.g. of `iae-gen turntable`.")
+@click.option("--side-by-side", is_flag=True,
+              help="Video frames show normal, albedo, reflection, R's image and (PBR data) Cycles' image.")
+@click.option("--fps", default=12.0, show_default=True, type=click.FloatRange(min=1, max=120))
 @click.option("--quiet", is_flag=True)
-def render(run_dir, intrinsics, out, style_seed, limit, device, quiet) -> None:
-    """Apply R to an intrinsics dataset: one sRGB PNG per sample."""
+def render(run_dir, intrinsics, out, style_seed, limit, device, video, side_by_side, fps, quiet) -> None:
+    """Apply R to an intrinsics dataset: one sRGB PNG per sample (and optionally a video)."""
     from .inference import render_dataset
 
+    if side_by_side and video is None:
+        raise click.UsageError("--side-by-side needs --video FILE")
     with one_line_errors():
         paths = render_dataset(run_dir, intrinsics, out, _device(device), style_seed=style_seed, limit=limit,
-                               progress=not quiet)
-    click.echo(f"{out}: {len(paths)} images")
+                               progress=not quiet, video=video, side_by_side=side_by_side, fps=fps)
+    click.echo(f"{out}: {len(paths)} images" + (f"; video {video}" if video else ""))
 
 
 @main.command()
@@ -91,6 +98,47 @@ def decompose(run_dir, images, out, limit, device, quiet) -> None:
     with one_line_errors():
         path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet)
     click.echo(f"{path}: predictions written")
+
+
+@main.command()
+@click.option("--run", "run_dir", required=True, type=click.Path(path_type=Path))
+@click.option("--net", required=True, type=click.Choice(["R", "H"]), help="R: intrinsics -> image; H: image -> intrinsics.")
+@click.option("--format", "fmt", default="onnx", show_default=True, type=click.Choice(["onnx", "torchscript"]))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--resolution", default=None, help="WIDTHxHEIGHT of the exported network (default: the training size).")
+@click.option("--half", is_flag=True, help="float16 weights and tensors (for GPU runtimes).")
+@click.option("--no-check", is_flag=True, help="Skip comparing the file's output with PyTorch's.")
+def export(run_dir, net, fmt, out, resolution, half, no_check) -> None:
+    """Write R or H of a run's newest checkpoint as ONNX or TorchScript, with its tensor conventions
+    (channels, encodings, ranges, run and checkpoint) in the file's metadata; batch size is dynamic."""
+    from .export import export_network, parse_resolution
+
+    with one_line_errors():
+        res = parse_resolution(resolution) if resolution else None
+        done = export_network(run_dir, net, fmt, out, res, half)
+        click.echo(f"{out}: {net} of {run_dir} (step {done.metadata['step']}), {fmt}, "
+                   f"{done.metadata['width']}x{done.metadata['height']}, {done.metadata['dtype']}")
+        if not no_check and not (half and fmt == "torchscript"):  # CPU PyTorch lacks some float16 kernels
+            _report_check(out, run_dir)
+
+
+@main.command("check-export")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--run", "run_dir", required=True, type=click.Path(path_type=Path))
+def check_export_cmd(file, run_dir) -> None:
+    """Check that FILE was exported from RUN's newest checkpoint and reproduces its output."""
+    with one_line_errors():
+        _report_check(file, run_dir)
+
+
+def _report_check(file: Path, run_dir: Path) -> None:
+    from .export import check_export
+
+    r = check_export(file, run_dir)
+    click.echo(f"{file}: max |difference| to PyTorch {r['max_abs_diff']:.2e} (mean {r['mean_abs_diff']:.2e}, "
+               f"tolerance {r['tolerance']:.0e}): {'ok' if r['ok'] else 'MISMATCH'}")
+    if not r["ok"]:
+        sys.exit(1)
 
 
 if __name__ == "__main__":

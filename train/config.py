@@ -65,6 +65,10 @@ class LossConfig:
     # Not in the paper: std of Gaussian noise added to R(M_s) and H(I_r) before the second network of
     # each cycle, so neither can pass the input on as a faint hidden code (Chu et al. 2017); 0 = the paper.
     cycle_noise: float = 0.0
+    # Not in the paper: each cycle loss trains only the cycle's second network (the first one's
+    # output enters it detached), so neither network is rewarded for hiding its input in codes
+    # the other can read (README: "It must learn first"); false = the paper's joint gradients.
+    cycle_detach: bool = False
     normal_threshold: float = 0.5  # the length loss applies where |n| > this (not on background)
 
 

@@ -28,19 +28,26 @@ def load_run_options(run_dir: Path) -> tuple[dict, Config]:
 
 def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None) -> tuple[Config, torch.nn.Module, int]:
     """Config and weights of a run folder (the newest checkpoint unless one is named)."""
+    cfg, model, step, _ = load_run_checkpoint(run_dir, device, checkpoint)
+    return cfg, model, step
+
+
+def load_run_checkpoint(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None
+                        ) -> tuple[Config, torch.nn.Module, int, Path]:
+    """`load_run` and the checkpoint file the weights came from."""
     run_dir = Path(run_dir)
     _, cfg = load_run_options(run_dir)
     model = build_model(cfg)
     if checkpoint:
-        state = read_state(Path(checkpoint))
-        load_weights(Path(checkpoint), model)
+        state, path = read_state(Path(checkpoint)), Path(checkpoint)
+        load_weights(path, model)
     else:
         state, path, skipped = load_newest(RunFolder(run_dir).checkpoints, model)
         for why in skipped:
             print(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
         if state is None:
             raise CheckpointError(f"--run {run_dir}: no readable checkpoint yet (train it with `iae-train fit` first)")
-    return cfg, model.to(device).eval(), int(state["step"])
+    return cfg, model.to(device).eval(), int(state["step"]), path
 
 
 def _srgb_png(path: Path, t: torch.Tensor) -> None:
@@ -59,22 +66,42 @@ def fresh_output(out: Path) -> Path:
 
 @torch.no_grad()
 def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cpu", batch: int = 4,
-                   style_seed: int = 0, limit: int | None = None, progress: bool = True) -> list[Path]:
-    """R applied to every sample of an intrinsics dataset: one sRGB PNG per sample."""
+                   style_seed: int = 0, limit: int | None = None, progress: bool = True,
+                   video: Path | None = None, side_by_side: bool = False, fps: float = 12.0) -> list[Path]:
+    """R applied to every sample of an intrinsics dataset: one sRGB PNG per sample.
+
+    `video` also assembles the frames in sample order (a turntable's path) into an MP4 or GIF;
+    `side_by_side` puts the intrinsics (normal, albedo, reflection) left of R's frame and, for a
+    PBR dataset, Cycles' image right of it.
+    """
+    from .video import check_video_path, display, side_by_side as join, write_video
+
+    if video is not None:
+        check_video_path(video)
     cfg, model, _ = load_run(run_dir, device)
     data = IntrinsicsData(intrinsics, cfg.data.height, cfg.data.width)
+    cycles = RealImages(intrinsics, cfg.data.height, cfg.data.width) if side_by_side and data.ds.kind == "pbr" else None
     n = len(data) if limit is None else min(limit, len(data))
     out = fresh_output(out)
     gen = torch.Generator().manual_seed(style_seed)
-    written = []
+    written, frames = [], []
     for start in tqdm(range(0, n, batch), desc="render", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         m = torch.stack([data[(i, False)] for i in idx]).to(device)
         imgs = model.render(m, generator=gen)
-        for i, img in zip(idx, imgs):
+        for i, img, stack in zip(idx, imgs, m):
             path = out / f"{data.ds.rows[i]['index']:06d}.png"
             _srgb_png(path, img)
             written.append(path)
+            if video is not None:
+                panels = [display(img)]
+                if side_by_side:
+                    panels = [display(stack[k:k + 3]) for k in (0, 3, 6)] + panels
+                    if cycles is not None:
+                        panels.append(display(cycles[(i, False)]))
+                frames.append(join(panels) if len(panels) > 1 else panels[0])
+    if video is not None:
+        write_video(frames, video, fps)
     return written
 
 

@@ -94,14 +94,17 @@ class IntrinsicAutoencoder(nn.Module):
         out = {"M_s": m_s, "I_r": i_r}
         if lc.rendering_cycle or everything:
             out["fake_I"] = self.render(m_s)  # R(M_s)
-            out["rec_M"] = self.H(self._noisy(out["fake_I"]))  # H(R(M_s))
+            out["rec_M"] = self.H(self._into_cycle(out["fake_I"]))  # H(R(M_s))
         if lc.decomposition_cycle or everything:
             out["fake_M"] = self.H(i_r)  # H(I_r)
-            out["rec_I"] = self.render(self._noisy(out["fake_M"]))  # R(H(I_r))
+            out["rec_I"] = self.render(self._into_cycle(out["fake_M"]))  # R(H(I_r))
         return out
 
-    def _noisy(self, x: torch.Tensor) -> torch.Tensor:
-        """`loss.cycle_noise` (training only): the discriminators still see the clean outputs."""
+    def _into_cycle(self, x: torch.Tensor) -> torch.Tensor:
+        """A first network's output on its way into the second: `loss.cycle_detach` cuts its
+        gradient, `loss.cycle_noise` (training only) perturbs it; discriminators see it unchanged."""
+        if self.loss_cfg.cycle_detach:
+            x = x.detach()
         if self.training and self.loss_cfg.cycle_noise > 0:
             return x + self.loss_cfg.cycle_noise * torch.randn_like(x)
         return x

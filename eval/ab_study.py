@@ -1,0 +1,284 @@
+"""The paper's human study (its Table 2): "which of the two images looks more like a real photo?"
+
+`build_study` writes one self-contained HTML page (images embedded) with randomised pairs of
+method A against method B and, given real photos, each method against a real photo (the
+fooling rate). Answers stay in the browser (localStorage, so a reload resumes) and are exported
+as a JSON file that carries everything the summary needs; `summarise` pools answer files of one
+study into preference ratios with Wilson 95% intervals.
+"""
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import io
+import json
+import math
+import random
+from dataclasses import dataclass
+from pathlib import Path
+
+from PIL import Image
+
+from blender_gen.dataset import atomic_write_bytes
+from train.data import IMAGE_SUFFIXES
+
+SCHEMA = "iae-ab-study/1"
+KINDS = {"AB": ("A", "B"), "AR": ("A", "real"), "BR": ("B", "real")}
+
+
+class StudyError(ValueError):
+    """A study that cannot be built or an answer file that cannot be used (names the file/option)."""
+
+
+def list_images(folder: Path, option: str) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise StudyError(f"{option} {folder}: no such folder of images")
+    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise StudyError(f"{option} {folder}: no .png/.jpg images found")
+    return files
+
+
+def _data_uri(path: Path, height: int | None) -> str:
+    """Every image re-encoded the same way (JPEG, quality 92) so the file format is never a tell."""
+    try:
+        img = Image.open(path).convert("RGB")
+    except OSError as exc:
+        raise StudyError(f"{path}: cannot read image ({exc})") from None
+    if height and img.height != height:
+        img = img.resize((max(1, round(img.width * height / img.height)), height), Image.LANCZOS)
+    buf = io.BytesIO()
+    img.save(buf, "JPEG", quality=92)
+    return "data:image/jpeg;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+@dataclass(frozen=True)
+class Pair:
+    id: int
+    kind: str  # AB, AR or BR
+    left: str  # "A", "B" or "real"
+    right: str
+    left_file: str
+    right_file: str
+
+
+def make_pairs(a: list[Path], b: list[Path], real: list[Path] | None, n: int, seed: int) -> list[Pair]:
+    """n pairs of each kind, shuffled, sides drawn at random.
+
+    When A and B share file names (two renderers of the same intrinsics) an A-vs-B pair shows the
+    same scene by both, so content never decides the vote.
+    """
+    rng = random.Random(seed)
+    by_name_b = {p.name: p for p in b}
+    shared = [p for p in a if p.name in by_name_b]
+    plan: list[tuple[str, Path, Path]] = []
+    if shared:
+        picks = rng.sample(shared, n) if n <= len(shared) else [rng.choice(shared) for _ in range(n)]
+        plan += [("AB", p, by_name_b[p.name]) for p in picks]
+    else:
+        plan += [("AB", rng.choice(a), rng.choice(b)) for _ in range(n)]
+    if real:
+        plan += [("AR", rng.choice(a), rng.choice(real)) for _ in range(n)]
+        plan += [("BR", rng.choice(b), rng.choice(real)) for _ in range(n)]
+    rng.shuffle(plan)
+    pairs = []
+    for i, (kind, first, second) in enumerate(plan):
+        names = KINDS[kind]
+        files = (first, second)
+        order = (0, 1) if rng.random() < 0.5 else (1, 0)
+        pairs.append(Pair(i, kind, names[order[0]], names[order[1]], str(files[order[0]]), str(files[order[1]])))
+    return pairs
+
+
+def build_study(a: Path, b: Path, out: Path, pairs: int, real: Path | None = None, seed: int = 0,
+                label_a: str = "A", label_b: str = "B", height: int | None = 256) -> Path:
+    """Write OUT/study.html (self-contained) and OUT/study.json (the key, for the record)."""
+    files_a, files_b = list_images(a, "--a"), list_images(b, "--b")
+    files_real = list_images(real, "--real") if real else None
+    plan = make_pairs(files_a, files_b, files_real, pairs, seed)
+    uris: dict[str, str] = {}
+    for p in plan:
+        for f in (p.left_file, p.right_file):
+            if f not in uris:
+                uris[f] = _data_uri(Path(f), height)
+    images = {f: k for k, f in enumerate(uris)}
+    study_id = hashlib.sha256(json.dumps([[p.left_file, p.right_file, p.left] for p in plan]).encode()).hexdigest()[:16]
+    key = {"schema": SCHEMA, "study": study_id, "labels": {"A": label_a, "B": label_b, "real": "real photo"},
+           "sources": {"A": str(Path(a).resolve()), "B": str(Path(b).resolve()),
+                       "real": str(Path(real).resolve()) if real else None},
+           "seed": seed, "pairs_per_kind": pairs,
+           "pairs": [{"pair": p.id, "kind": p.kind, "left": p.left, "right": p.right, "left_image": images[p.left_file],
+                      "right_image": images[p.right_file], "left_file": p.left_file, "right_file": p.right_file}
+                     for p in plan]}
+    page_data = {"schema": SCHEMA, "study": study_id, "labels": key["labels"], "images": list(uris.values()),
+                 "pairs": [{k: v for k, v in q.items() if not k.endswith("_file")} for q in key["pairs"]]}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "study.json", json.dumps(key, indent=1).encode())
+    page = _PAGE.replace("__DATA__", json.dumps(page_data).replace("</", "<\\/")).replace(
+        "__TITLE__", html.escape(f"Which looks more like a real photo? ({len(plan)} pairs)"))
+    atomic_write_bytes(out / "study.html", page.encode())
+    return out / "study.html"
+
+
+# ------------------------------------------------------------------------------ summary
+def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """Wilson score interval of a proportion k / n (95% by default); (0, 1) when n = 0."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def read_answers(path: Path) -> dict:
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StudyError(f"{path}: no such answer file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StudyError(f"{path}: not a JSON answer file ({exc})") from None
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("answers"), list):
+        raise StudyError(f"{path}: not an answer file of `iae-eval ab-study` (expected schema {SCHEMA})")
+    for i, ans in enumerate(data["answers"]):
+        if not isinstance(ans, dict) or ans.get("chosen") not in ("A", "B", "real") or ans.get("kind") not in KINDS \
+                or ans["chosen"] not in KINDS[ans["kind"]]:
+            raise StudyError(f"{path}: answer {i} is malformed ({json.dumps(ans)[:120]})")
+    return data
+
+
+def summarise(paths: list[Path]) -> dict:
+    """Pool answer files of one study: per comparison, how often the first of the two was chosen."""
+    if not paths:
+        raise StudyError("no answer files given")
+    files = [read_answers(p) for p in paths]
+    study = files[0]["study"]
+    for p, f in zip(paths, files):
+        if f["study"] != study:
+            raise StudyError(f"{p}: answers to study {f['study']}, not {study} (of {paths[0]}); summarise one study at a time")
+    labels = files[0]["labels"]
+    rows = []
+    for kind, (first, second) in KINDS.items():
+        answers = [a for f in files for a in f["answers"] if a["kind"] == kind]
+        if not answers:
+            continue
+        k = sum(a["chosen"] == first for a in answers)
+        lo, hi = wilson(k, len(answers))
+        per = [sum(a["chosen"] == first for a in f["answers"] if a["kind"] == kind) /
+               max(1, sum(a["kind"] == kind for a in f["answers"])) for f in files]
+        rows.append({"comparison": f"{labels[first]} vs {labels[second]}", "kind": kind, "chosen": labels[first],
+                     "k": k, "n": len(answers), "ratio": k / len(answers), "ci95": [lo, hi],
+                     "per_participant": per})
+    return {"study": study, "participants": [f.get("participant") or "(anonymous)" for f in files],
+            "files": [str(p) for p in paths], "rows": rows}
+
+
+def format_summary(s: dict) -> str:
+    lines = [f"study {s['study']}: {len(s['files'])} answer file(s) ({', '.join(s['participants'])})",
+             f"{'comparison':<44}{'chosen as more real':>24}{'95% CI (Wilson)':>18}{'answers':>9}"]
+    for r in s["rows"]:
+        lo, hi = r["ci95"]
+        chosen = f"{r['chosen']} {100 * r['ratio']:.1f}%"
+        ci = f"[{100 * lo:.1f}, {100 * hi:.1f}]"
+        lines.append(f"{r['comparison']:<44}{chosen:>24}{ci:>18}{r['n']:>9}")
+    return "\n".join(lines)
+
+
+_PAGE = r"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>__TITLE__</title>
+<style>
+body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1400px;color:#222}
+#pair{display:flex;gap:1em;justify-content:center}
+#pair figure{margin:0;text-align:center}
+#pair img{max-width:100%;height:auto;border:1px solid #ccc;display:block}
+button{font-size:1.1em;margin-top:.5em;padding:.4em 1.2em;cursor:pointer}
+#status{margin:.8em 0;font-weight:bold}
+.hidden{display:none}
+</style></head><body>
+<h1>Which image looks more like a real photo?</h1>
+<p>Look at both images and click the one that looks more like a real photograph (keys: &larr; / &rarr;).
+Your answers stay in this browser; when you are done, download them and send the file back.</p>
+<p><label>Your name or initials (optional): <input id="participant" size="20"></label></p>
+<div id="status"></div>
+<div id="pair">
+ <figure><img id="left" alt="left image"><button id="pick-left">This one (&larr;)</button></figure>
+ <figure><img id="right" alt="right image"><button id="pick-right">This one (&rarr;)</button></figure>
+</div>
+<p id="done" class="hidden">All pairs answered, thank you. <button id="download">Download answers (JSON)</button></p>
+<p><button id="restart">Start again (forgets the answers in this browser)</button></p>
+<pre id="export" class="hidden"></pre>
+<div id="selfcheck" class="hidden"></div>
+<script id="study-data" type="application/json">__DATA__</script>
+<script>
+"use strict";
+const errors = [];
+window.addEventListener("error", e => errors.push(String(e.message)));
+const S = JSON.parse(document.getElementById("study-data").textContent);
+const storeKey = "iae-ab-" + S.study;
+let state = {answers: [], participant: ""};
+function load() { try { const s = localStorage.getItem(storeKey); if (s) state = JSON.parse(s); } catch (e) {} }
+function save() { try { localStorage.setItem(storeKey, JSON.stringify(state)); } catch (e) {} }
+let shownAt = 0;
+function show() {
+  const i = state.answers.length, n = S.pairs.length;
+  document.getElementById("status").textContent = i < n ? `Pair ${i + 1} of ${n}` : `${n} of ${n} answered`;
+  document.getElementById("pair").classList.toggle("hidden", i >= n);
+  document.getElementById("done").classList.toggle("hidden", i < n);
+  if (i < n) {
+    document.getElementById("left").src = S.images[S.pairs[i].left_image];
+    document.getElementById("right").src = S.images[S.pairs[i].right_image];
+    shownAt = performance.now();
+  }
+}
+function pick(side) {
+  const i = state.answers.length;
+  if (i >= S.pairs.length) return;
+  const p = S.pairs[i];
+  state.answers.push({pair: p.pair, kind: p.kind, left: p.left, right: p.right, choice: side,
+                      chosen: side === "left" ? p.left : p.right, ms: Math.round(performance.now() - shownAt)});
+  save(); show();
+}
+function exported() {
+  state.participant = document.getElementById("participant").value;
+  return {schema: S.schema, study: S.study, labels: S.labels, participant: state.participant,
+          created: new Date().toISOString(), total_pairs: S.pairs.length, answers: state.answers};
+}
+function download() {
+  const blob = new Blob([JSON.stringify(exported(), null, 1)], {type: "application/json"});
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(blob);
+  a.download = `answers-${S.study}-${(state.participant || "anonymous").replace(/[^A-Za-z0-9_-]/g, "_")}.json`;
+  a.click();
+}
+document.getElementById("pick-left").addEventListener("click", () => pick("left"));
+document.getElementById("pick-right").addEventListener("click", () => pick("right"));
+document.getElementById("download").addEventListener("click", download);
+document.getElementById("restart").addEventListener("click", () => {
+  if (location.hash.startsWith("#simulate=") || confirm("Forget all answers?")) { state = {answers: [], participant: ""}; save(); show(); }
+});
+document.getElementById("participant").addEventListener("change", e => { state.participant = e.target.value; save(); });
+document.addEventListener("keydown", e => { if (e.key === "ArrowLeft") pick("left"); if (e.key === "ArrowRight") pick("right"); });
+load();
+document.getElementById("participant").value = state.participant || "";
+show();
+// Test hook: "#simulate=LRRL..." clicks the buttons in that order from a fresh start and shows
+// the JSON the download button would save (used by the headless-browser test).
+if (location.hash.startsWith("#simulate=")) {
+  document.getElementById("restart").click();
+  document.getElementById("participant").value = "simulated";
+  for (const c of location.hash.slice(10)) document.getElementById(c === "L" ? "pick-left" : "pick-right").click();
+  const ex = document.getElementById("export");
+  ex.textContent = JSON.stringify(exported());
+  ex.classList.remove("hidden");
+}
+window.addEventListener("load", () => {
+  const imgs = [...document.images].filter(i => i.getAttribute("src"));
+  const broken = imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length;
+  document.getElementById("selfcheck").textContent = `images=${imgs.length} broken=${broken} errors=${errors.length}`;
+});
+</script></body></html>
+"""

@@ -1,0 +1,92 @@
+"""`iae-train export`: ONNX / TorchScript files that reproduce PyTorch and refuse what is not theirs."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from train.export import ExportedNet, ExportError, check_export, example_input, export_network, read_metadata
+from train.inference import load_run
+
+from .test_train import _run
+from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two tiny trained runs (the second with other weights: another seed)."""
+    root = tmp_path_factory.mktemp("export")
+    intr, photos = tiny_intrinsics(root / "intr"), tiny_photos(root / "photos")
+    out = []
+    for name, seed in (("a", 0), ("b", 1)):
+        run = root / name
+        _run("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(run),
+             "--max-steps", "3", "--quiet", *TINY, "--set", f"run.seed={seed}")
+        out.append(run)
+    return out
+
+
+@pytest.mark.parametrize("net, fmt", [("R", "onnx"), ("H", "onnx"), ("R", "torchscript"), ("H", "torchscript")])
+def test_export_reproduces_pytorch_at_any_batch_size(runs, tmp_path, net, fmt):
+    run = runs[0]
+    path = tmp_path / f"{net}.{'onnx' if fmt == 'onnx' else 'pt'}"
+    export_network(run, net, fmt, path, resolution=(96, 48))
+    meta = read_metadata(path)
+    assert (meta["net"], meta["format"], meta["width"], meta["height"]) == (net, fmt, 96, 48)
+    assert "sRGB" in meta["input_doc" if net == "H" else "output_doc"] and meta["step"] == 3
+    _, model, _ = load_run(run)
+    exported = ExportedNet(path)
+    for batch in (1, 3):  # the batch axis is dynamic
+        x = example_input(net, batch, 48, 96, seed=batch)
+        with torch.no_grad():
+            ref = (model.render if net == "R" else model.decompose)(torch.from_numpy(x)).numpy()
+        got = exported(x)
+        assert got.shape == ref.shape == (batch, 3 if net == "R" else 9, 48, 96)
+        np.testing.assert_allclose(got, ref, atol=1e-4)  # the tolerance check_export states
+    assert check_export(path, run)["ok"]
+
+
+def test_half_onnx_runs_on_onnx_runtime_within_its_tolerance(runs, tmp_path):
+    path = tmp_path / "R16.onnx"
+    export_network(runs[0], "R", "onnx", path, half=True)
+    result = check_export(path, runs[0])
+    assert read_metadata(path)["dtype"] == "float16" and result["ok"] and result["max_abs_diff"] > 0
+
+
+def test_a_file_of_another_run_or_a_corrupt_file_is_refused(runs, tmp_path):
+    a, b = runs
+    path = tmp_path / "R.onnx"
+    export_network(a, "R", "onnx", path)
+    with pytest.raises(ExportError, match=r"exported from .*, not from the newest checkpoint of --run"):
+        check_export(path, b)
+    torn = tmp_path / "torn.onnx"
+    torn.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(ExportError, match=r"torn.onnx: not a readable onnx file"):
+        read_metadata(torn)
+    ts = tmp_path / "R.pt"
+    export_network(a, "R", "torchscript", ts)
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a zip" + ts.read_bytes()[100:])
+    with pytest.raises(ExportError, match=r"bad.pt: not a readable torchscript file"):
+        ExportedNet(bad)
+    plain = tmp_path / "plain.pt"  # TorchScript, but not this project's export
+    torch.jit.save(torch.jit.script(torch.nn.Identity()), str(plain))
+    with pytest.raises(ExportError, match="without this project's export metadata"):
+        read_metadata(plain)
+
+
+def test_export_command_checks_the_file_and_errors_name_the_option(runs, tmp_path):
+    out = tmp_path / "H.onnx"
+    proc = _run("export", "--run", str(runs[0]), "--net", "H", "--out", str(out))
+    assert "tolerance" in proc.stdout and ": ok" in proc.stdout and out.exists()
+    assert not list(tmp_path.glob("*.tmp*"))  # written under a temporary name, then renamed
+    bad = _run("export", "--run", str(runs[0]), "--net", "R", "--out", str(tmp_path / "x.onnx"),
+               "--resolution", "98x48", check=False)
+    assert bad.returncode == 1 and "--resolution 98x48: width and height must be multiples of" in bad.stderr
+    assert not (tmp_path / "x.onnx").exists()
+    bad = _run("check-export", str(out), "--run", str(runs[1]), check=False)
+    assert bad.returncode == 1 and "export it again" in bad.stderr and "Traceback" not in bad.stderr
+    meta = json.loads(json.dumps(read_metadata(out)))
+    assert meta["checkpoint"] == "step_00000003.safetensors" and len(meta["checkpoint_sha256"]) == 64

@@ -1,0 +1,108 @@
+"""`iae-gen turntable`, R's video of it (`iae-train render --video`) and `iae-eval flicker`."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from blender_gen.dataset import open_dataset
+from eval.flicker import frame_differences
+
+from .conftest import ROOT, run_gen
+from .test_train import _run as run_train
+from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+
+FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def paths(tmp_path_factory):
+    root = tmp_path_factory.mktemp("turntable")
+    common = ["--car", "sedan_a", "--frames", str(FRAMES), "--resolution", "64x32", "--radius", "7", "--height", "2",
+              "--paint", "royal_blue", "--seed", "4", "--quiet"]
+    run_gen("turntable", "--out", str(root / "intr"), *common)
+    run_gen("turntable", "--out", str(root / "pbr"), *common, "--pbr", "--samples", "2")
+    return root
+
+
+@pytest.mark.blender
+def test_frames_orbit_one_car_in_order_with_everything_else_fixed(paths):
+    rows = open_dataset(paths / "intr").rows
+    assert [r["index"] for r in rows] == list(range(FRAMES))
+    assert {r["car"]["name"] for r in rows} == {"sedan_a"} and {r["paint"] for r in rows} == {"royal_blue"}
+    assert len({json.dumps(r["envmap"]) for r in rows}) == 1 and len({r["seed"] for r in rows}) == 1
+    target = np.array(rows[0]["camera"]["target"])
+    for k, r in enumerate(rows):
+        loc = np.array(r["camera"]["location"])
+        assert math.hypot(*(loc - target)[:2]) == pytest.approx(7.0, abs=1e-6) and loc[2] == pytest.approx(2.0)
+        angle = math.degrees(math.atan2(loc[1] - target[1], loc[0] - target[0])) % 360
+        assert angle == pytest.approx(360 * k / FRAMES, abs=1e-6) or (k == 0 and angle == pytest.approx(360.0))
+        assert r["camera"]["target"] == rows[0]["camera"]["target"]
+    pbr = open_dataset(paths / "pbr")
+    assert pbr.kind == "pbr" and [r["camera"] for r in pbr.rows] == [r["camera"] for r in rows]
+    a, b = open_dataset(paths / "intr").load(2, ["normal", "mask"]), pbr.load(2, ["normal", "mask"])
+    inner = (a["mask"][..., 0] == 1) & (b["mask"][..., 0] == 1)  # edges differ: PBR averages jittered samples
+    assert inner.sum() > 50 and np.median(np.sum(a["normal"][inner] * b["normal"][inner], axis=-1)) > 0.99
+
+
+@pytest.mark.blender
+def test_bad_turntable_options_are_one_line_errors(tmp_path):
+    bad = run_gen("turntable", "--out", str(tmp_path / "a"), "--car", "sedan_a", "--frames", "3",
+                  "--paint", "mauve", "--quiet", check=False)
+    assert bad.returncode and "--paint 'mauve': no such paint; expected one of" in bad.stderr
+    bad = run_gen("turntable", "--out", str(tmp_path / "b"), "--car", "sedan", "--frames", "3", "--quiet", check=False)
+    assert bad.returncode and "selects" in bad.stderr and "name one" in bad.stderr
+    bad = run_gen("turntable", "--out", str(tmp_path / "c"), "--car", "sedan_a", "--frames", "3", "--radius", "2.5",
+                  "--focal", "80", "--resolution", "64x32", "--quiet", check=False)
+    assert bad.returncode and "does not fit" in bad.stderr and "--radius 2.5" in bad.stderr
+    assert "Traceback" not in bad.stderr
+
+
+def test_frame_differences_on_hand_computed_frames():
+    frames = np.zeros((3, 2, 2, 3))
+    frames[1, 0, 0] = 30  # one pixel lights up, then goes dark again
+    masks = np.zeros((3, 2, 2), bool)
+    masks[:, 0, :] = True
+    d = frame_differences(frames, masks)
+    # each of the two steps changes 1 pixel x 3 channels by 30 out of 12 values
+    assert d["whole_frame"] == pytest.approx(30 * 3 / 12) and d["frames"] == 3
+    assert d["car"] == pytest.approx(30 * 3 / 6)  # over the 2 masked pixels x 3 channels
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        frame_differences(frames[:1])
+
+
+@pytest.mark.blender
+def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_path):
+    run = tmp_path / "run"
+    run_train("fit", "--config", "cpu-small", "--intrinsics", str(tiny_intrinsics(tmp_path / "blobs")),
+              "--real", str(tiny_photos(tmp_path / "photos")), "--run-dir", str(run), "--max-steps", "2", "--quiet", *TINY)
+    video = tmp_path / "R.mp4"
+    run_train("render", "--run", str(run), "--intrinsics", str(paths / "pbr"), "--out", str(tmp_path / "frames"),
+              "--video", str(video), "--side-by-side", "--quiet")
+    import imageio_ffmpeg
+
+    reader = imageio_ffmpeg.read_frames(str(video))
+    meta = next(reader)
+    assert sum(1 for _ in reader) == FRAMES
+    assert meta["size"] == (5 * 64 + 4 * 2, 32)  # normal | albedo | reflection | R | Cycles, 2-px gaps
+    gif = tmp_path / "R.gif"
+    run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f2"),
+              "--video", str(gif), "--quiet")
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == FRAMES
+    bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
+                    "--video", str(tmp_path / "R.avi"), check=False)
+    assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
+    out = tmp_path / "flicker.json"
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(paths / "pbr"),
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    (r,) = json.loads(out.read_text())
+    assert r["cycles"]["frames"] == FRAMES and r["cycles"]["whole_frame"] > 0
+    assert r["ratio_whole_frame"] == pytest.approx(r["renderer"]["whole_frame"] / r["cycles"]["whole_frame"])
+    assert "Cycles (reference)" in proc.stdout
