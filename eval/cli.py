@@ -151,12 +151,15 @@ def flicker(runs, path, out) -> None:
     c = results[0]["cycles"]
     click.echo(f"{path}: {c['frames']} frames; mean |frame(t+1) - frame(t)| in 8-bit sRGB units "
                f"(ratio = renderer / Cycles; 1 = as steady as Cycles)")
-    click.echo(f"{'renderer':<40}{'whole frame':>12}{'car':>8}{'ratio':>8}{'ratio car':>10}")
-    click.echo(f"{'Cycles (reference)':<40}{c['whole_frame']:>12.2f}{c['car']:>8.2f}{1:>8.2f}{1:>10.2f}")
+    click.echo("temporal error = mean |(R(t+1) - R(t)) - (Cycles(t+1) - Cycles(t))|: 0 = changes exactly as Cycles")
+    click.echo(f"{'renderer':<36}{'whole frame':>12}{'car':>8}{'ratio':>8}{'ratio car':>10}{'temp. err':>10}"
+               f"{'t.e. car':>9}")
+    click.echo(f"{'Cycles (reference)':<36}{c['whole_frame']:>12.2f}{c['car']:>8.2f}{1:>8.2f}{1:>10.2f}{0:>10.2f}{0:>9.2f}")
     for r in results:
         name = f"{Path(r['run']).name} (step {r['step']})"
-        click.echo(f"{name:<40}{r['renderer']['whole_frame']:>12.2f}{r['renderer']['car']:>8.2f}"
-                   f"{r['ratio_whole_frame']:>8.2f}{r['ratio_car']:>10.2f}")
+        te = r["temporal_error"]
+        click.echo(f"{name:<36}{r['renderer']['whole_frame']:>12.2f}{r['renderer']['car']:>8.2f}"
+                   f"{r['ratio_whole_frame']:>8.2f}{r['ratio_car']:>10.2f}{te['whole_frame']:>10.2f}{te['car']:>9.2f}")
 
 
 @main.command("ab-study")

@@ -6,6 +6,9 @@ motion alone (its seed is fixed and it is denoised), so the ratio
     mean_t |R_{t+1} - R_t|  /  mean_t |C_{t+1} - C_t|
 is 1 for a renderer as steady as Cycles and grows with flicker. Both are measured in 8-bit
 sRGB units over the whole frame and over car pixels (the union of both frames' masks).
+A blurry renderer changes less than a sharp one, so the ratio rewards blur; the temporal
+error mean_t |(R_{t+1} - R_t) - (C_{t+1} - C_t)| (TecoGAN's idea of comparing temporal
+differences with the reference's) is 0 only for a renderer that changes exactly as Cycles does.
 """
 from __future__ import annotations
 
@@ -31,12 +34,23 @@ def frame_differences(frames: np.ndarray, masks: np.ndarray | None = None) -> di
     return out
 
 
+def temporal_error(frames: np.ndarray, reference: np.ndarray, masks: np.ndarray | None = None) -> dict:
+    """Mean |(f_{t+1} - f_t) - (g_{t+1} - g_t)| of two frame sequences (T, H, W, 3), whole frame
+    and (given masks) over pixels inside either frame's mask."""
+    d = np.abs(np.diff(frames.astype(np.float64), axis=0) - np.diff(reference.astype(np.float64), axis=0))
+    out = {"whole_frame": float(d.mean())}
+    if masks is not None:
+        m = masks[1:] | masks[:-1]
+        out["car"] = float(d[m].mean()) if m.any() else float("nan")
+    return out
+
+
 def _to255(t: torch.Tensor) -> np.ndarray:
     return ((t.float().clamp(-1, 1) + 1.0) * 127.5).permute(1, 2, 0).cpu().numpy()
 
 
 @torch.no_grad()
-def measure_flicker(run_dir: Path, path: Path, device: str = "cpu", batch: int = 4) -> dict:
+def measure_flicker(run_dir: Path, path: Path, device: str = "cpu") -> dict:
     """R's and Cycles' frame-to-frame change on a PBR turntable set, at R's training size."""
     from train.inference import load_run
 
@@ -49,15 +63,16 @@ def measure_flicker(run_dir: Path, path: Path, device: str = "cpu", batch: int =
     cycles_set = RealImages(path, h, w)
     n = len(data)
     r_frames, c_frames, masks = [], [], []
-    for start in range(0, n, batch):
-        idx = list(range(start, min(n, start + batch)))
-        imgs = model.render(torch.stack([data[(i, False)] for i in idx]).to(device))
-        r_frames += [_to255(x) for x in imgs]
     for i in range(n):
+        # one style code for every frame (MUNIT): only the camera changes
+        img = model.render(data[(i, False)][None].to(device), generator=torch.Generator().manual_seed(0))
+        r_frames.append(_to255(img[0]))
         c_frames.append(_to255(cycles_set[(i, False)]))
         mask = to_network("mask", data.ds.load(i, ["mask"])["mask"])
         masks.append(cover_crop(torch.from_numpy(mask).permute(2, 0, 1).contiguous(), h, w)[0].numpy() > 0)
-    r, c = frame_differences(np.stack(r_frames), np.stack(masks)), frame_differences(np.stack(c_frames), np.stack(masks))
+    rf, cf, mf = np.stack(r_frames), np.stack(c_frames), np.stack(masks)
+    r, c = frame_differences(rf, mf), frame_differences(cf, mf)
     return {"run": str(run_dir), "step": step, "path": str(path), "size": [w, h], "renderer": r, "cycles": c,
+            "temporal_error": temporal_error(rf, cf, mf),
             "ratio_whole_frame": r["whole_frame"] / c["whole_frame"],
             "ratio_car": r["car"] / c["car"] if c["car"] > 0 else float("nan")}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from blender_gen.dataset import open_dataset
-from eval.flicker import frame_differences
+from eval.flicker import frame_differences, temporal_error
 
 from .conftest import ROOT, run_gen
 from .test_train import _run as run_train
@@ -73,6 +73,10 @@ def test_frame_differences_on_hand_computed_frames():
     assert d["car"] == pytest.approx(30 * 3 / 6)  # over the 2 masked pixels x 3 channels
     with pytest.raises(ValueError, match="at least 2 frames"):
         frame_differences(frames[:1])
+    steady = frames + 7.0  # a constant offset changes nothing between frames
+    assert temporal_error(steady, frames, masks) == {"whole_frame": 0.0, "car": 0.0}
+    still = np.zeros_like(frames)  # a renderer that ignores the motion misses all of it
+    assert temporal_error(still, frames, masks)["whole_frame"] == pytest.approx(d["whole_frame"])
 
 
 @pytest.mark.blender

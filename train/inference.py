@@ -88,7 +88,10 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
     for start in tqdm(range(0, n, batch), desc="render", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         m = torch.stack([data[(i, False)] for i in idx]).to(device)
-        imgs = model.render(m, generator=gen)
+        if video is None:
+            imgs = model.render(m, generator=gen)
+        else:  # one style code for every frame (MUNIT), so a video changes only with the camera
+            imgs = torch.cat([model.render(x[None], generator=torch.Generator().manual_seed(style_seed)) for x in m])
         for i, img, stack in zip(idx, imgs, m):
             path = out / f"{data.ds.rows[i]['index']:06d}.png"
             _srgb_png(path, img)
