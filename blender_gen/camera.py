@@ -144,12 +144,13 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, width: int, heig
 class Orbit:
     """A camera path around one car (`iae-gen turntable`): frame k of n sits at angle
     start + 360 k / n degrees, `radius` m from the car's centre and `height` m above the ground,
-    looking at the centre, with one focal length (Blender's defaults: no roll, fixed seed)."""
+    looking at the centre, with one focal length (Blender's defaults: no roll, fixed seed).
+    `focal` None: the longest focal length (whole mm, 10..80) at which every frame shows the whole car."""
 
     frames: int
     radius: float = 6.0
     height: float = 1.6
-    focal: float = 35.0  # mm, 36 mm wide sensor
+    focal: float | None = None  # mm, 36 mm wide sensor; None = fit the car
     start_deg: float = 0.0
     paint: str | None = None  # None: drawn once from the seed
     env_rotation_deg: float | None = None  # None: drawn once from the seed
@@ -159,13 +160,25 @@ class Orbit:
             raise ValueError(f"--frames {self.frames}: expected at least 1")
         if not self.radius > 0:
             raise ValueError(f"--radius {self.radius}: expected a distance in metres > 0")
-        if not self.focal > 0:
+        if self.focal is not None and not self.focal > 0:
             raise ValueError(f"--focal {self.focal}: expected a focal length in mm > 0")
 
 
-def orbit_pose(points: np.ndarray, orbit: Orbit, frame: int, width: int, height: int,
-               ranges: CameraRanges = CameraRanges()) -> CameraPose:
-    """Camera of one frame of an orbit; a frame that cannot show the whole car is an error."""
+def orbit_focal(points: np.ndarray, orbit: Orbit, width: int, height: int,
+                ranges: CameraRanges = CameraRanges()) -> float:
+    """The orbit's focal length: its own, or the longest that keeps the car whole in every frame."""
+    if orbit.focal is not None:
+        return float(orbit.focal)
+    for focal in range(80, 9, -1):
+        trial = replace(orbit, focal=float(focal))
+        if all(_orbit_view(points, trial, k, width, height, ranges)[1] for k in range(orbit.frames)):
+            return float(focal)
+    raise CameraError(f"turntable: the car does not fit the {width}x{height} frame at --radius {orbit.radius} m, "
+                      f"--height {orbit.height} m even with a 10 mm lens; increase --radius")
+
+
+def _orbit_view(points: np.ndarray, orbit: Orbit, frame: int, width: int, height: int,
+                ranges: CameraRanges) -> tuple[CameraPose, bool]:
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = 0.5 * (lo + hi)
     a = np.deg2rad(orbit.start_deg + 360.0 * frame / orbit.frames)
@@ -174,7 +187,15 @@ def orbit_pose(points: np.ndarray, orbit: Orbit, frame: int, width: int, height:
                       rotation=tuple(tuple(float(v) for v in row) for row in look_at(loc, centre)),
                       target=tuple(float(v) for v in centre), focal_length=float(orbit.focal),
                       sensor_width=ranges.sensor_width)
-    if not view_ok(points, pose, width, height, replace(ranges, min_coverage=0.0)):
+    return pose, view_ok(points, pose, width, height, replace(ranges, min_coverage=0.0))
+
+
+def orbit_pose(points: np.ndarray, orbit: Orbit, frame: int, width: int, height: int,
+               ranges: CameraRanges = CameraRanges()) -> CameraPose:
+    """Camera of one frame of an orbit (with a set focal length); a frame that cannot show the
+    whole car is an error."""
+    pose, ok = _orbit_view(points, orbit, frame, width, height, ranges)
+    if not ok:
         raise CameraError(f"turntable frame {frame}: the car does not fit the {width}x{height} frame at "
                           f"--radius {orbit.radius} m, --height {orbit.height} m with --focal {orbit.focal} mm; "
                           "increase --radius or lower --focal")

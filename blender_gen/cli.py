@@ -197,8 +197,8 @@ def pbr(**o) -> None:
 @click.option("--radius", default=Orbit.radius, show_default=True, type=click.FloatRange(min=0, min_open=True),
               help="Camera distance from the car's centre (m).")
 @click.option("--height", "cam_height", default=Orbit.height, show_default=True, type=float, help="Camera height (m).")
-@click.option("--focal", default=Orbit.focal, show_default=True, type=click.FloatRange(min=0, min_open=True),
-              help="Focal length (mm, 36 mm sensor).")
+@click.option("--focal", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Focal length (mm, 36 mm sensor); default: the longest that shows the whole car in every frame.")
 @click.option("--start", default=0.0, show_default=True, type=float, help="Angle of the first frame (degrees).")
 @click.option("--envmap", default=None, help="Equirectangular .hdr/.exr or a built-in sky set (default: procedural).")
 @click.option("--env-rotation", default=None, type=float, help="Environment rotation (degrees; default: drawn from --seed).")

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import os
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from . import scene as S
-from .camera import orbit_pose, sample_camera
+from .camera import orbit_focal, orbit_pose, sample_camera
 from .cars import load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
@@ -165,6 +166,9 @@ class SampleRenderer:
         drawn_rotation = float(rng.uniform(0.0, 360.0))
         rotation = drawn_rotation if orbit.env_rotation_deg is None else float(orbit.env_rotation_deg)
         car = self.car(spec)
+        if orbit.focal is None:  # fitted to this car once; the same in every worker
+            orbit = replace(orbit, focal=orbit_focal(car.points, orbit, self.recipe.width, self.recipe.height,
+                                                     self.recipe.camera))
         pose = orbit_pose(car.points, orbit, frame, self.recipe.width, self.recipe.height, self.recipe.camera)
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 

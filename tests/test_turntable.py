@@ -42,6 +42,7 @@ def test_frames_orbit_one_car_in_order_with_everything_else_fixed(paths):
         angle = math.degrees(math.atan2(loc[1] - target[1], loc[0] - target[0])) % 360
         assert angle == pytest.approx(360 * k / FRAMES, abs=1e-6) or (k == 0 and angle == pytest.approx(360.0))
         assert r["camera"]["target"] == rows[0]["camera"]["target"]
+        assert r["camera"]["focal_length"] == rows[0]["camera"]["focal_length"]  # fitted once, for all frames
     pbr = open_dataset(paths / "pbr")
     assert pbr.kind == "pbr" and [r["camera"] for r in pbr.rows] == [r["camera"] for r in rows]
     a, b = open_dataset(paths / "intr").load(2, ["normal", "mask"]), pbr.load(2, ["normal", "mask"])
@@ -60,6 +61,22 @@ def test_bad_turntable_options_are_one_line_errors(tmp_path):
                   "--focal", "80", "--resolution", "64x32", "--quiet", check=False)
     assert bad.returncode and "does not fit" in bad.stderr and "--radius 2.5" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_the_fitted_focal_length_is_the_longest_that_shows_the_car_in_every_frame():
+    from dataclasses import replace
+
+    from blender_gen.camera import CameraError, CameraRanges, Orbit, _orbit_view, orbit_focal
+
+    box = np.array([[x, y, z] for x in (-2.3, 2.3) for y in (-0.9, 0.9) for z in (0.0, 1.5)])
+    orbit = Orbit(frames=12, radius=6.0, height=1.6)
+    f = orbit_focal(box, orbit, 128, 64)
+    ok = lambda focal: all(_orbit_view(box, replace(orbit, focal=focal), k, 128, 64, CameraRanges())[1]  # noqa: E731
+                           for k in range(12))
+    assert 10 <= f < 80 and ok(f) and not ok(f + 1)
+    assert orbit_focal(box, replace(orbit, focal=50.0), 128, 64) == 50.0  # a given focal length is kept
+    with pytest.raises(CameraError, match="even with a 10 mm lens; increase --radius"):
+        orbit_focal(box, replace(orbit, radius=2.4), 128, 64)
 
 
 def test_frame_differences_on_hand_computed_frames():
