@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -231,6 +231,10 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
             _fail(f"--car {car!r}: selects {len(chosen)} cars; name one (see `iae-gen cars`)")
     orbit = Orbit(frames=frames, radius=radius, height=cam_height, focal=focal, start_deg=start, paint=paint,
                   env_rotation_deg=env_rotation)
+    try:
+        orbit.validate()
+    except ValueError as exc:
+        _fail(str(exc))
     o = {"out": out, "count": frames, "seed": seed, "resolution": resolution, "cars": (car,), "car_rules": car_rules,
          "envmaps": (envmap,) if envmap else (), "samples": samples, "workers": workers, "shard": None,
          "radius_min": CameraRanges.radius_min, "radius_max": CameraRanges.radius_max,

@@ -54,6 +54,7 @@ class SampleRenderer:
         self.car_specs = self._resolve_cars()
         self._cars: dict[str, S.CarInstance] = {}
         self._visible: str | None = None
+        self._orbit_focal: float | None = None
         fd, self._scratch = tempfile.mkstemp(prefix="iae_render_", suffix=".exr", dir=_scratch_dir())
         os.close(fd)
         self.scene.render.filepath = self._scratch
@@ -166,9 +167,11 @@ class SampleRenderer:
         drawn_rotation = float(rng.uniform(0.0, 360.0))
         rotation = drawn_rotation if orbit.env_rotation_deg is None else float(orbit.env_rotation_deg)
         car = self.car(spec)
-        if orbit.focal is None:  # fitted to this car once; the same in every worker
-            orbit = replace(orbit, focal=orbit_focal(car.points, orbit, self.recipe.width, self.recipe.height,
-                                                     self.recipe.camera))
+        if orbit.focal is None:  # fitted to the car once per process (a pure function: every worker agrees)
+            if self._orbit_focal is None:
+                self._orbit_focal = orbit_focal(car.points, orbit, self.recipe.width, self.recipe.height,
+                                                self.recipe.camera)
+            orbit = replace(orbit, focal=self._orbit_focal)
         pose = orbit_pose(car.points, orbit, frame, self.recipe.width, self.recipe.height, self.recipe.camera)
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 

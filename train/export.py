@@ -84,11 +84,12 @@ def _divisor(cfg) -> int:
 
 def _metadata(run_dir: Path, cfg, step: int, checkpoint: Path, net: str, fmt: str, width: int, height: int,
               half: bool) -> dict:
-    io = ({"input": "intrinsics", "input_doc": INTRINSICS_DOC, "output": "image", "output_doc": IMAGE_DOC,
-           "input_channels_used": "NAF" if cfg.model.kind != "iae" and cfg.model.kind != "oracle"
-           else "".join(c for c in "NAF" if c in cfg.model.inputs)}
-          if net == "R" else
-          {"input": "image", "input_doc": IMAGE_DOC, "output": "intrinsics", "output_doc": INTRINSICS_DOC})
+    if net == "R":  # the Intrinsic Autoencoder's ablations read a subset; the baselines all nine channels
+        used = "".join(c for c in "NAF" if c in cfg.model.inputs) if cfg.model.kind in ("iae", "oracle") else "NAF"
+        io = {"input": "intrinsics", "input_doc": INTRINSICS_DOC, "output": "image", "output_doc": IMAGE_DOC,
+              "input_channels_used": used}
+    else:
+        io = {"input": "image", "input_doc": IMAGE_DOC, "output": "intrinsics", "output_doc": INTRINSICS_DOC}
     return {"schema": SCHEMA, "net": net, "format": fmt, "model_kind": cfg.model.kind, "config_name": cfg.name,
             "run": str(Path(run_dir).resolve()), "step": step,
             "checkpoint": checkpoint.name, "checkpoint_sha256": sha256_file(checkpoint),
