@@ -155,14 +155,6 @@ class Orbit:
     paint: str | None = None  # None: drawn once from the seed
     env_rotation_deg: float | None = None  # None: drawn once from the seed
 
-    def validate(self) -> None:
-        if self.frames < 1:
-            raise ValueError(f"--frames {self.frames}: expected at least 1")
-        if not self.radius > 0:
-            raise ValueError(f"--radius {self.radius}: expected a distance in metres > 0")
-        if self.focal is not None and not self.focal > 0:
-            raise ValueError(f"--focal {self.focal}: expected a focal length in mm > 0")
-
 
 def orbit_focal(points: np.ndarray, orbit: Orbit, width: int, height: int,
                 ranges: CameraRanges = CameraRanges()) -> float:

@@ -218,8 +218,9 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
     """
     from .materials import load_materials
 
-    if paint is not None and paint not in load_materials().paints:
-        _fail(f"--paint {paint!r}: no such paint; expected one of {', '.join(load_materials().paints)}")
+    paints = load_materials().paints
+    if paint is not None and paint not in paints:
+        _fail(f"--paint {paint!r}: no such paint; expected one of {', '.join(paints)}")
     if "," in car:
         _fail(f"--car {car!r}: a turntable shows one car")
     cars = check_cars((car,), car_rules)
@@ -231,10 +232,6 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
             _fail(f"--car {car!r}: selects {len(chosen)} cars; name one (see `iae-gen cars`)")
     orbit = Orbit(frames=frames, radius=radius, height=cam_height, focal=focal, start_deg=start, paint=paint,
                   env_rotation_deg=env_rotation)
-    try:
-        orbit.validate()
-    except ValueError as exc:
-        _fail(str(exc))
     o = {"out": out, "count": frames, "seed": seed, "resolution": resolution, "cars": (car,), "car_rules": car_rules,
          "envmaps": (envmap,) if envmap else (), "samples": samples, "workers": workers, "shard": None,
          "radius_min": CameraRanges.radius_min, "radius_max": CameraRanges.radius_max,

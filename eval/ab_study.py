@@ -21,7 +21,7 @@ from pathlib import Path
 from PIL import Image
 
 from blender_gen.dataset import atomic_write_bytes
-from train.data import IMAGE_SUFFIXES
+from train.data import image_files
 
 SCHEMA = "iae-ab-study/1"
 KINDS = {"AB": ("A", "B"), "AR": ("A", "real"), "BR": ("B", "real")}
@@ -35,7 +35,7 @@ def list_images(folder: Path, option: str) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise StudyError(f"{option} {folder}: no such folder of images")
-    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = image_files(folder)
     if not files:
         raise StudyError(f"{option} {folder}: no .png/.jpg images found")
     return files

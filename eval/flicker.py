@@ -26,18 +26,19 @@ def frame_differences(frames: np.ndarray, masks: np.ndarray | None = None) -> di
     and channel, over all pixels and over pixels inside either frame's mask."""
     if len(frames) < 2:
         raise ValueError("flicker needs at least 2 frames")
-    d = np.abs(np.diff(frames.astype(np.float64), axis=0))  # (T-1, H, W, 3)
-    out = {"frames": int(len(frames)), "whole_frame": float(d.mean())}
-    if masks is not None:
-        m = masks[1:] | masks[:-1]
-        out["car"] = float(d[m].mean()) if m.any() else float("nan")
-    return out
+    return {"frames": int(len(frames)), **_means(np.abs(np.diff(frames.astype(np.float64), axis=0)), masks)}
 
 
 def temporal_error(frames: np.ndarray, reference: np.ndarray, masks: np.ndarray | None = None) -> dict:
     """Mean |(f_{t+1} - f_t) - (g_{t+1} - g_t)| of two frame sequences (T, H, W, 3), whole frame
     and (given masks) over pixels inside either frame's mask."""
-    d = np.abs(np.diff(frames.astype(np.float64), axis=0) - np.diff(reference.astype(np.float64), axis=0))
+    return _means(np.abs(np.diff(frames.astype(np.float64), axis=0) - np.diff(reference.astype(np.float64), axis=0)),
+                  masks)
+
+
+def _means(d: np.ndarray, masks: np.ndarray | None) -> dict:
+    """Mean of per-step differences d (T-1, H, W, 3): whole frame and, given masks (T, H, W),
+    over pixels inside either frame's mask."""
     out = {"whole_frame": float(d.mean())}
     if masks is not None:
         m = masks[1:] | masks[:-1]

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from blender_gen.dataset import DatasetError, open_dataset
-from train.data import IMAGE_SUFFIXES
+from train.data import image_files
 
 # Recipe fields that do not change which car, paint, environment and camera a sample shows.
 _NOT_SAMPLE_FIELDS = {"kind", "samples", "width", "height"}
@@ -48,7 +48,7 @@ def describe(role: str, root: Path) -> SetInfo:
     if not (root / "dataset.json").exists():
         if not root.is_dir():
             raise DatasetError(f"{role} {root}: no such dataset or image folder")
-        n = sum(1 for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+        n = len(image_files(root))
         return SetInfo(role, root, "images", n)
     ds = open_dataset(root)
     recipe = ds.info.get("recipe") or {}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +25,21 @@ def assets_mark(sub: str):
 @pytest.fixture
 def _fail_missing_assets():
     pytest.fail(f"{SHARED_ASSETS} is missing: CI runs with ../shared beside the clone")
+
+
+@pytest.fixture
+def headless_chromium(tmp_path) -> list[str]:
+    """The command line of a headless Chromium with a fresh profile (append flags and a URL).
+
+    Skipped where no Chromium is installed, but a failure in CI, whose .ci/run installs it."""
+    browser = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
+    if browser is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing in CI: .ci/run installs Debian's chromium")
+        pytest.skip("chromium not installed (apt-get install chromium)")
+    return [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--no-first-run",
+            f"--user-data-dir={tmp_path / 'chromium-profile'}"]
 
 
 def run_gen(*args: str, check: bool = True) -> subprocess.CompletedProcess:

@@ -14,7 +14,6 @@ from PIL import Image
 from eval.ab_study import StudyError, build_study, make_pairs, summarise, wilson
 
 from .conftest import ROOT
-from .test_eval import _chromium
 
 
 def _images(root, names, colour, suffix=".png"):
@@ -51,17 +50,10 @@ def test_pairs_are_balanced_randomised_and_show_the_same_scene_for_a_and_b(study
     assert make_pairs.__doc__ and key["labels"]["A"] == "ours"
 
 
-def test_the_page_loads_and_simulated_clicks_export_the_expected_answers(study, tmp_path):
-    browser = _chromium()
-    if browser is None:
-        if os.environ.get("CI"):
-            pytest.fail("chromium is missing in CI: .ci/run installs Debian's chromium")
-        pytest.skip("chromium not installed (apt-get install chromium)")
+def test_the_page_loads_and_simulated_clicks_export_the_expected_answers(study, tmp_path, headless_chromium):
     page, key = study
     clicks = "LRLLRRLRLRRL"
-    flags = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}",
-             "--virtual-time-budget=5000", "--dump-dom"]
+    flags = headless_chromium + ["--virtual-time-budget=5000", "--dump-dom"]
     dom = subprocess.run(flags + [page.resolve().as_uri() + "#simulate=" + clicks], capture_output=True, text=True,
                          timeout=120).stdout
     check = re.search(r'id="selfcheck"[^>]*>images=(\d+) broken=(\d+) errors=(\d+)<', dom)

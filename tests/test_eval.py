@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -109,13 +108,6 @@ def test_scoring_a_predictions_folder_writes_csv_and_json(tmp_path):
     assert bad.returncode and "no such dataset directory" in bad.stderr
 
 
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        if shutil.which(name):
-            return shutil.which(name)
-    return None
-
-
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
@@ -155,16 +147,10 @@ def test_report_has_tables_like_the_papers(report):
     assert list((out / "runs").glob("*/losses.png")) and list((out / "runs").glob("*/decomposition.csv"))
 
 
-def test_report_page_loads_in_headless_chromium(report, tmp_path):
-    browser = _chromium()
-    if browser is None:
-        if os.environ.get("CI"):
-            pytest.fail("chromium is missing in CI: .ci/run installs Debian's chromium")
-        pytest.skip("chromium not installed (apt-get install chromium)")
+def test_report_page_loads_in_headless_chromium(report, headless_chromium):
     out, _ = report
     page = (out / "report.html").resolve().as_uri()
-    flags = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path / 'profile'}"]
+    flags = headless_chromium
     dom = subprocess.run(flags + ["--virtual-time-budget=5000", "--dump-dom", page], capture_output=True, text=True,
                          timeout=120)
     m = re.search(r'id="selfcheck">images=(\d+) broken=(\d+) errors=(\d+)<', dom.stdout)

@@ -21,6 +21,11 @@ from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, open_dataset
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
+def image_files(root: Path) -> list[Path]:
+    """The JPG/PNG photos under a folder (recursively), in a fixed order."""
+    return sorted(p for p in Path(root).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def _resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """(C, H, W) -> (C, h, w); area averaging when shrinking, bilinear when growing."""
     if t.shape[1:] == (h, w):
@@ -87,7 +92,7 @@ class RealImages(Dataset):
             self.files: list[Path] = []
             n = len(self.ds)
         elif root.is_dir():
-            self.files = sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+            self.files = image_files(root)
             n = len(self.files)
         else:
             raise DatasetError(f"{root}: no such folder of images or PBR dataset")
