@@ -41,7 +41,8 @@ demo: $(STAMP)
 		--intrinsics $(DEMO)/intrinsics_unseen --out $(DEMO)/report --quiet
 	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"
 
-# The paper's comparison end to end (eval/reproduce.py): BUDGET=smoke|cpu|gpu|paper; more options
+# The paper's comparison end to end (eval/reproduce.py): BUDGET=smoke|cpu|gpu|paper, or the sanity
+# settings S0/S1 (eval/sanity.py): BUDGET=sanity|sanity-smoke; more options
 # through REPRO_ARGS, e.g. REPRO_ARGS="--steps 3000 --runs full,oracle --out out/mine". Resumes.
 BUDGET ?= smoke
 REPRO_ARGS ?=
@@ -59,6 +60,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_train.py
 	$(PY) bench/bench_eval.py
 	$(PY) bench/bench_export.py
+	$(PY) bench/bench_data_cache.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache

@@ -151,7 +151,7 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
     envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or (default_env,)
     return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
                   car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
-                  camera=ranges, views_per_car=o["views_per_car"])
+                  camera=ranges, views_per_car=o["views_per_car"], background=o.get("background", "black"))
 
 
 def _run(recipe: Recipe, o: dict) -> None:
@@ -172,6 +172,9 @@ def main() -> None:
 
 @main.command()
 @_common_options
+@click.option("--background", type=click.Choice(["environment", "black"]), default="environment", show_default=True,
+              help="environment: the reflection layer shows the environment behind the car, so a real image's "
+                   "sky and ground are expressible as intrinsics (README: Making it learn); black: all layers 0 there.")
 def intrinsics(**o) -> None:
     """Render the synthetic intrinsic maps M_s (normal, albedo, reflection, mask)."""
     _run(_build_recipe("intrinsics", "procedural:train", 1, o), o)
@@ -204,13 +207,16 @@ def pbr(**o) -> None:
 @click.option("--env-rotation", default=None, type=float, help="Environment rotation (degrees; default: drawn from --seed).")
 @click.option("--paint", default=None, help="Body paint by name (default: drawn from --seed).")
 @click.option("--pbr", is_flag=True, help="Render the Cycles image too (a `pbr` dataset): Cycles' video of the same path.")
+@click.option("--background", type=click.Choice(["environment", "black"]), default="environment", show_default=True,
+              help="Intrinsics only: the reflection layer's background, as in `iae-gen intrinsics` (R trained on "
+                   "environment backgrounds expects them); a --pbr path's layers are the ground truth, black there.")
 @click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel (--pbr: 8).")
 @click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels.")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256))
 @click.option("--quiet", is_flag=True)
-def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, envmap, env_rotation, paint, pbr, samples,
-              resolution, seed, workers, quiet) -> None:
+def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, envmap, env_rotation, paint, pbr, background,
+              samples, resolution, seed, workers, quiet) -> None:
     """Intrinsics (or, with --pbr, Cycles images and intrinsics) of a camera orbiting one car.
 
     `iae-train render --run RUN --intrinsics OUT --out DIR --video R.mp4` turns them into R's video;
@@ -237,7 +243,8 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
          "radius_min": CameraRanges.radius_min, "radius_max": CameraRanges.radius_max,
          "height_min": CameraRanges.height_min, "height_max": CameraRanges.height_max,
          "focal_range": f"{CameraRanges.focal_min:g}-{CameraRanges.focal_max:g}",
-         "min_coverage": CameraRanges.min_coverage, "views_per_car": 1, "quiet": quiet}
+         "min_coverage": CameraRanges.min_coverage, "views_per_car": 1, "quiet": quiet,
+         "background": "black" if pbr else background}
     recipe = _build_recipe("pbr" if pbr else "intrinsics", car, 8 if pbr else 1, o)
     _run(replace(recipe, orbit=orbit), o)
 

@@ -9,8 +9,6 @@ shadow-catcher ground plane.
 """
 from __future__ import annotations
 
-import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +17,6 @@ from . import scene as S
 from .conversions import preview_srgb8
 from .dataset import save_png
 from .render import SampleRenderer
-
-
-def _rz(degrees: float) -> np.ndarray:
-    a = math.radians(degrees)
-    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
 class PbrRenderer(SampleRenderer):
@@ -56,25 +49,6 @@ class PbrRenderer(SampleRenderer):
         self.ground = S.shadow_catcher(self.scene)
         # Lamps glow and show in reflections; sampling them as lights costs more than it adds.
         self.shader.cycles.emission_sampling = "NONE"
-
-    def set_environment(self, img) -> None:
-        super().set_environment(img)
-        if self.world_env.image != img:
-            self.world_env.image = img  # Cycles rebuilds its light-sampling map: once per block
-
-    def place(self, d: dict) -> None:
-        """Turn car and camera by -rotation instead of the world by +rotation.
-
-        Both give the same picture and the same camera-space layers, but a changed world
-        makes Cycles rebuild the environment's importance map (over a second per frame).
-        """
-        rot = _rz(-d["rotation"])
-        S.set_sample_state(d["car"], d["paint"], 0.0)
-        d["car"].root.rotation_euler = (0.0, 0.0, -math.radians(d["rotation"]))
-        pose = d["pose"]
-        turned = replace(pose, location=tuple(rot @ np.asarray(pose.location)),
-                         rotation=tuple(map(tuple, rot @ pose.matrix())), target=tuple(rot @ np.asarray(pose.target)))
-        S.set_camera(self.scene, turned)
 
     def _read_passes(self) -> dict[str, np.ndarray]:
         layers = super()._read_passes()

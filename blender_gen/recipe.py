@@ -35,6 +35,10 @@ class Recipe:
     views_per_car: int = 4
     # A camera path around one car instead of random views (`iae-gen turntable`); None = random.
     orbit: Orbit | None = None
+    # Intrinsics only. "black": the background of every layer is 0 (DESIGN.md). "environment":
+    # the reflection layer's background is the environment seen directly behind the car, so the
+    # sky and ground of a real image are expressible as intrinsics (README: Making it learn).
+    background: str = "black"
 
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""
@@ -42,6 +46,8 @@ class Recipe:
         d["envmaps"] = [_file_identity(e) if e not in PROCEDURAL_SETS else e for e in self.envmaps]
         d["cars"] = [_file_identity(c) if Path(c).suffix else c for c in self.cars]
         d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
+        if self.background == "black":  # sets made before the option existed keep their identity
+            del d["background"]
         return d
 
     def envmap_names(self) -> list[str]:

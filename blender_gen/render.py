@@ -7,6 +7,7 @@ first use and kept, so a worker pays for each model once.
 """
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from dataclasses import replace
@@ -25,6 +26,11 @@ from .recipe import Recipe, block_seed, sample_seed
 from .rules import MODEL_SUFFIXES, ImportedSpec, imported_specs, load_rules
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
+
+
+def _rz(degrees: float) -> np.ndarray:
+    a = math.radians(degrees)
+    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
 def _scratch_dir() -> str:
@@ -64,17 +70,40 @@ class SampleRenderer:
     def _configure(self, threads: int) -> None:
         S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
 
+    world_env = None  # the world's environment texture node, where the world shows the environment
+
     def _setup_lighting(self) -> None:
-        """Intrinsics need no light: AOVs only, the world stays black."""
+        """Intrinsics need no light: AOVs only. With `background = "environment"` the world shows
+        the environment, read back through Cycles' Environment pass (the car is a holdout)."""
+        if self.recipe.background == "environment":
+            self.world_env, self.world_turn = S.environment_world(self.scene, self.env_node.image)
+            self.scene.view_layers[0].use_pass_environment = True
 
     def set_environment(self, img) -> None:
         if self.env_node.image != img:
             self.env_node.image = img
+        if self.world_env is not None and self.world_env.image != img:
+            self.world_env.image = img  # Cycles rebuilds its light-sampling map: once per block
 
     def place(self, d: dict) -> None:
-        """Paint, environment rotation (a shader attribute) and camera of a sample."""
-        S.set_sample_state(d["car"], d["paint"], d["rotation"])
-        S.set_camera(self.scene, d["pose"])
+        """Paint, environment rotation and camera of a sample.
+
+        With no world, the rotation is a shader attribute. With a world (PBR, or the environment
+        background) car and camera turn by -rotation instead of the world by +rotation: the same
+        picture and camera-space layers, but a changed world would make Cycles rebuild the
+        environment's importance map (over a second per frame).
+        """
+        if self.world_env is None:
+            S.set_sample_state(d["car"], d["paint"], d["rotation"])
+            S.set_camera(self.scene, d["pose"])
+            return
+        rot = _rz(-d["rotation"])
+        S.set_sample_state(d["car"], d["paint"], 0.0)
+        d["car"].root.rotation_euler = (0.0, 0.0, -math.radians(d["rotation"]))
+        pose = d["pose"]
+        turned = replace(pose, location=tuple(rot @ np.asarray(pose.location)),
+                         rotation=tuple(map(tuple, rot @ pose.matrix())), target=tuple(rot @ np.asarray(pose.target)))
+        S.set_camera(self.scene, turned)
 
     # ------------------------------------------------------------------ resources
     def _resolve_cars(self) -> list:
@@ -216,8 +245,12 @@ class SampleRenderer:
         length = np.linalg.norm(normal, axis=-1, keepdims=True)
         on = mask > 0
         normal = np.where(on & (length > 1e-6), normal / np.maximum(length, 1e-6), 0.0)
+        reflection = get("reflection", "RGB")
+        if self.recipe.kind == "intrinsics" and self.recipe.background == "environment":
+            # the AOV covers the car, the Environment pass the rest: edges blend by coverage
+            reflection = reflection + np.maximum(get("Environment", "RGB"), 0.0)
         return {
-            "normal": normal, "albedo": get("albedo", "RGB"), "reflection": get("reflection", "RGB"),
+            "normal": normal, "albedo": get("albedo", "RGB"), "reflection": reflection,
             "mask": mask, "material": np.round(get("material", "X")),
         }
 

@@ -23,6 +23,7 @@ from blender_gen.conversions import linear_to_srgb, preview_srgb8  # noqa: E402
 from blender_gen.dataset import (INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset,  # noqa: E402
                                  save_png)
 from train.config import Config  # noqa: E402
+from train.probe import probe_plot  # noqa: E402
 from train.run_folder import RunFolder  # noqa: E402
 
 from .decomposition import score_predictions, write_results  # noqa: E402
@@ -183,7 +184,11 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
         curve = loss_plot(stats, label) if stats else None
         if curve:
             atomic_write_bytes(rdir / "losses.png", curve)
+        probe_curve = probe_plot(stats, label)  # None for a run trained without --probe
+        if probe_curve:
+            atomic_write_bytes(rdir / "probe.png", probe_curve)
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,
+                        "probe_curve": probe_curve,
                         "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
     if references:
         run, opts, cfg = runs_opts[0]
@@ -360,7 +365,9 @@ def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets
 
     warn_html = "".join(f'<p class="warning">WARNING: {html.escape(w)}</p>' for w in warnings)
     curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(Path(e['run']).name)})</h3>"
-                     + _img(_data_uri(e["curve"]), f"loss curves {e['label']}") for e in entries if e["curve"])
+                     + _img(_data_uri(e["curve"]), f"loss curves {e['label']}")
+                     + (_img(_data_uri(e["probe_curve"]), f"probe curves {e['label']}") if e.get("probe_curve") else "")
+                     for e in entries if e["curve"])
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>Intrinsic Autoencoder evaluation</title>
 <style>

@@ -89,6 +89,7 @@ class Plan:
     threads: int
     gpus: int
     runs: list[str] = field(default_factory=list)
+    run_seed: int | None = None  # the trainings' seed (default: `seed`, which also makes the data)
 
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.out / "data", self.seed
@@ -110,9 +111,9 @@ class Plan:
         b = self.budget
         preset, extra = next((p, e) for n, p, e in RUNS if n == name)
         sets = [f"data.height={b.train[0]}", f"data.width={b.train[1]}", f"data.batch_size={b.batch}",
-                f"optim.max_steps={b.steps}", f"run.seed={self.seed}",
+                f"optim.max_steps={b.steps}", f"run.seed={self.seed if self.run_seed is None else self.run_seed}",
                 f"run.log_every={max(1, b.steps // 200)}", f"run.grid_every={max(1, b.steps // 6)}",
-                f"run.checkpoint_every={max(1, b.steps // 10)}"]
+                f"run.checkpoint_every={max(1, b.steps // 10)}", f"run.probe_every={max(1, b.steps // 12)}"]
         if b.decay_start is not None:
             sets.append(f"optim.decay_start={b.decay_start}")
         if preset is None:
@@ -124,7 +125,8 @@ class Plan:
         sets += list(extra)
         data = self.out / "data"
         cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(data / "real"),
-               "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet"]
+               "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",
+               "--probe", str(data / "eval")]  # the Table-3 set: curves of what the report will measure
         cmd += [a for s in sets for a in ("--set", s)]
         if self.gpus > 1:
             return ["torchrun", "--standalone", f"--nproc_per_node={self.gpus}", "-m", "train.cli", *cmd]
@@ -187,7 +189,9 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
 
 
 @click.command("reproduce")
-@click.option("--budget", type=click.Choice(list(BUDGETS)), default="smoke", show_default=True)
+@click.option("--budget", type=click.Choice([*BUDGETS, "sanity", "sanity-smoke"]), default="smoke", show_default=True,
+              help="smoke/cpu/gpu/paper: the paper's comparison; sanity: the S0/S1 settings (README: Making it learn); "
+                   "sanity-smoke: the same at toy size.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: out/reproduce_BUDGET).")
 @click.option("--steps", type=click.IntRange(1), default=None, help="Training steps per run (budget's by default).")
@@ -199,13 +203,19 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
 @click.option("--runs", default=None, help=f"Comma-separated subset of: {', '.join(n for n, _, _ in RUNS)}.")
 @click.option("--jobs", type=click.IntRange(1), default=None,
               help="Trainings at once (default: on CPU one per core, each with one thread; on GPUs 1).")
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="CPU threads per training (default: cores / --jobs); set 1 when several reproduce runs share the cores.")
 @click.option("--seed", type=int, default=100, show_default=True)
+@click.option("--run-seed", type=int, default=None,
+              help="Seed of the trainings (default: --seed): another run seed on the same data.")
 @click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
-def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, seed,
-                  dry_run) -> None:
+def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads, seed,
+                  run_seed, dry_run) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     from .cli import parse_size
 
+    if budget.startswith("sanity"):
+        return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run)
     b = BUDGETS[budget]
     overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
                                    ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
@@ -225,7 +235,8 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
     gpus = torch.cuda.device_count()
     cores = os.cpu_count() or 1
     jobs = jobs or (1 if gpus else min(cores, len(chosen)))
-    plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, max(1, cores // jobs), gpus, chosen)
+    plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
+                run_seed)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {b.n_real} real stand-in, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}")
@@ -241,3 +252,24 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
     if shutil.which("torchrun") is None and gpus > 1:
         raise click.ClickException("torchrun not found on PATH (it comes with torch)")
     reproduce(plan)
+
+
+def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | None, threads: int | None, seed: int,
+                dry_run: bool) -> None:
+    from .sanity import SANITY_BUDGETS, SanityPlan, run_sanity
+
+    b = SANITY_BUDGETS[budget]
+    if steps is not None:
+        b = replace(b, steps=steps)
+    cores = os.cpu_count() or 1
+    jobs = jobs or cores
+    plan = SanityPlan(b, budget, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs))
+    n_runs = len(plan.runs())
+    click.echo(f"reproduce, budget {budget!r}: {b.note}")
+    click.echo(f"  data      {b.n_intrinsics} intrinsics (S0: half M_s, half shaded as real), {b.n_real} PBR of the "
+               f"training cars (S1 real, masked), {b.n_probe} Table-3 probe images at {b.render}")
+    click.echo(f"  training  S0 and S1: the full model on seeds {', '.join(map(str, b.seeds))} and the oracle; "
+               f"{n_runs} runs x {b.steps} steps at {b.train[0]}x{b.train[1]}, {jobs} at a time")
+    click.echo(f"  output    {plan.out}")
+    if not dry_run:
+        run_sanity(plan)

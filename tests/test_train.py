@@ -302,7 +302,7 @@ def test_ddp_two_cpu_processes_gloo(data, tmp_path):
 
 @pytest.mark.parametrize("preset, setting, message", [
     ("cyclegan", "model.d_scales=3", "model.d_scales does not apply to model.kind = 'cyclegan'"),
-    ("cyclegan", "loss.w_ren=10", "loss.w_ren does not apply"),
+    ("cyclegan", "loss.w_ren=3", "loss.w_ren does not apply"),
     ("munit", "cyclegan.pool=10", "cyclegan.pool does not apply to model.kind = 'munit'"),
     ("paper", "munit.dim=8", "munit.dim does not apply to model.kind = 'iae'"),
     ("paper", "data.batch_size=0", "data.batch_size: expected at least 1"),

@@ -33,9 +33,12 @@ def main() -> None:
 @click.option("--set", "overrides", multiple=True, help="Override a config value: section.key=value (repeatable).")
 @click.option("--max-steps", type=click.IntRange(1), default=None,
               help="Stop after this many steps (default: optim.max_steps).")
+@click.option("--probe", type=click.Path(), default=None,
+              help="PBR set with ground truth, never used for gradients: every run.probe_every steps H's errors, the "
+                   "constant predictor's and R's input sensitivity go to stats.jsonl, TensorBoard and probe.png.")
 @click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(config, intrinsics, real, run_dir, overrides, max_steps, device, quiet) -> None:
+def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, quiet) -> None:
     """Train a model; under `torchrun --nproc_per_node K` it trains on K processes.
 
     Ctrl-C or SIGTERM saves a checkpoint after the current step; the same command resumes.
@@ -48,13 +51,38 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, device, quiet) 
     try:
         with one_line_errors(EXPECTED + (NonFiniteLoss,)):
             cfg = load_config(config, list(overrides)) if config else None
-            result = run_fit(run_dir, cfg, intrinsics, real, max_steps, _device(device), progress=not quiet)
+            result = run_fit(run_dir, cfg, intrinsics, real, max_steps, _device(device), progress=not quiet,
+                             probe=probe)
     except Interrupted as exc:
         click.echo(f"{run_dir}: {exc}", err=True)
         sys.exit(128 + exc.signum)
     rate = result["steps_run"] / result["seconds"] if result["seconds"] > 0 else 0.0
     click.echo(f"{run_dir}: step {result['step']} ({result['steps_run']} steps in {result['seconds']:.1f} s, "
                f"{rate:.2f} it/s)")
+
+
+@main.command()
+@click.option("--run", "run_dir", required=True, type=click.Path(path_type=Path))
+@click.option("--probe", required=True, type=click.Path(path_type=Path),
+              help="PBR set with ground truth: I_r and the supervised direction come from it.")
+@click.option("--checkpoint", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A checkpoint of the run (default: its newest), e.g. RUN/checkpoints/step_00001000.safetensors.")
+@click.option("--batch", type=click.IntRange(2, 256), default=8, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True, help="Which intrinsics and probe images form the batch.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the figures as JSON.")
+@click.option("--device", default="auto", show_default=True)
+def diagnose(run_dir, probe, checkpoint, batch, seed, json_out, device) -> None:
+    """Per loss term: its gradient norm on H_N, H_A, H_F and R and its cosine with the supervised direction."""
+    from .diagnose import diagnose_run, format_diagnosis
+
+    with one_line_errors(EXPECTED + (ValueError,)):
+        result = diagnose_run(run_dir, probe, checkpoint, batch, seed, _device(device))
+        if json_out:
+            from blender_gen.dataset import atomic_write_json
+
+            atomic_write_json(json_out, result)
+    click.echo(format_diagnosis(result))
 
 
 @main.command()

@@ -6,6 +6,7 @@ resumed run reads exactly the batches an uninterrupted one would.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Iterator
 
@@ -164,3 +165,67 @@ def infinite_loader(ds: Dataset, sampler: StepSampler, workers: int) -> Iterator
     loader = DataLoader(ds, batch_sampler=sampler, num_workers=workers, persistent_workers=workers > 0,
                         prefetch_factor=4 if workers > 0 else None, generator=gen)
     return iter(loader)
+
+
+# --------------------------------------------------------------------------- training-size cache
+
+def content_key(ds: Dataset) -> str:
+    """What a dataset's training-size tensors depend on: its samples' checksums (EXR sets) or its
+    photos' paths, sizes and modification times."""
+    import hashlib
+
+    h = hashlib.sha256()
+    inner = getattr(ds, "ds", None)
+    if inner is not None:
+        for row in inner.rows:
+            h.update(f"{row['index']}:{row['sha256']};".encode())
+    else:
+        for p in ds.files:
+            st = p.stat()
+            h.update(f"{p.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
+
+
+class CachedTensors(Dataset):
+    """A dataset's unflipped training-size tensors decoded once into a memory-mapped .npy file
+    (float32, so batches are bit-identical to decoding on the fly); flips are applied on read.
+
+    The file is keyed by the content and the resolution (a .json beside it, written last), so a
+    changed dataset or size rebuilds it, and a half-built file is never used."""
+
+    def __init__(self, ds: Dataset, path: Path, stack: bool, progress: bool = False):
+        import json
+
+        from blender_gen.dataset import atomic_write_json, temp_name
+        from tqdm import tqdm
+
+        self.stack = stack
+        path, meta = Path(path), Path(path).with_suffix(".json")
+        sample = ds[(0, False)]
+        key = {"content": content_key(ds), "shape": [len(ds), *sample.shape], "dtype": "float32"}
+        if not (path.exists() and meta.exists() and json.loads(meta.read_text()) == key):
+            meta.unlink(missing_ok=True)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = temp_name(path)
+            arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=tuple(key["shape"]))
+            for i in tqdm(range(len(ds)), desc=f"cache {path.name}", unit="sample", disable=not progress):
+                arr[i] = ds[(i, False)].numpy()
+            arr.flush()
+            del arr
+            os.replace(tmp, path)
+            atomic_write_json(meta, key)
+        self.data = np.load(path, mmap_mode="r")
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
+        index, flip = item
+        t = torch.from_numpy(np.array(self.data[index]))
+        if not flip:
+            return t
+        return flip_stack(t) if self.stack else torch.flip(t, dims=[-1])
+
+
+def cache_bytes(ds: Dataset, channels: int, height: int, width: int) -> int:
+    return len(ds) * channels * height * width * 4

@@ -23,8 +23,9 @@ from tqdm import tqdm
 from blender_gen.dataset import atomic_write_json, save_png, write_json_lines
 from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict
-from .data import IntrinsicsData, RealImages, StepSampler, infinite_loader
+from .data import CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, infinite_loader
 from .model import build_model
+from .probe import evaluate_probe, probe_plot
 from .run_folder import RunFolder
 
 
@@ -143,7 +144,8 @@ def _resolve(flag: str, device: str) -> bool:
     return flag == "on" or (flag == "auto" and device.startswith("cuda"))
 
 
-def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None) -> tuple[Config, dict]:
+def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None,
+                probe: str | None = None) -> tuple[Config, dict]:
     """New run: check the data, then write training_options.json. Existing run: read it (the run resumes).
 
     Everything is validated before the folder is written, so a failed start never leaves a
@@ -167,13 +169,21 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
                 raise ConfigError(f"--{moved[0]} {intrinsics if moved[0] == 'intrinsics' else real}: the run in "
                                   f"{run_dir} was trained on {opts[moved[0]]}")
             check_data(saved, opts["intrinsics"], opts["real"])
+            if probe and str(Path(probe).resolve()) != opts.get("probe"):  # never used for gradients: may change
+                opts["probe"] = str(Path(probe).resolve())
+                atomic_write_json(run.options_path, opts)
             return saved, opts
         cfg = cfg or saved
         intrinsics, real = intrinsics or opts["intrinsics"], real or opts["real"]
+        probe = probe or opts.get("probe")
     if cfg is None or not intrinsics or not real:
         raise ConfigError(f"--run-dir {run_dir}: no run there to resume; a new run needs --config, --intrinsics, --real")
     check_data(cfg, intrinsics, real)
+    if probe:
+        check_probe(probe)
     opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve())}
+    if probe:
+        opts["probe"] = str(Path(probe).resolve())
     run_dir.mkdir(parents=True, exist_ok=True)
     run.stats_path.unlink(missing_ok=True)  # from a start that never reached a checkpoint
     atomic_write_json(run.options_path, opts)
@@ -186,6 +196,35 @@ def check_data(cfg: Config, intrinsics: str, real: str) -> None:
     reals = RealImages(Path(real), cfg.data.height, cfg.data.width)
     if cfg.model.kind == "oracle" and reals.ds is None:
         raise ConfigError(f"--real {real}: the supervised oracle needs a PBR dataset (images with their intrinsics)")
+
+
+def _maybe_cached(ds, run: RunFolder, name: str, channels: int, cfg: Config, progress: bool):
+    """(dataset, loader workers): the run's training-size cache when it fits in data.cache_gb, else
+    the decoding dataset with data.workers loader processes."""
+    if cfg.data.cache_gb <= 0 or cache_bytes(ds, channels, cfg.data.height, cfg.data.width) > cfg.data.cache_gb * 1e9:
+        return ds, cfg.data.workers
+    path = run.root / "cache" / f"{name}_{cfg.data.height}x{cfg.data.width}.npy"
+    return CachedTensors(ds, path, stack=channels == 9, progress=progress), 0
+
+
+def check_probe(probe: str) -> None:
+    """A probe must be a PBR dataset (images with their intrinsics and masks)."""
+    from blender_gen.dataset import open_dataset
+
+    open_dataset(Path(probe), kinds=("pbr",))
+
+
+def make_probe(opts: dict, cfg: Config, intr: IntrinsicsData, device: str):
+    """The run's probe set at training size, with the constant predictor's albedo and reflection
+    (the means of up to 200 training intrinsics), on `device`; None without --probe."""
+    if not opts.get("probe"):
+        return None
+    from .probe import load_probe, training_means
+
+    probe = load_probe(Path(opts["probe"]), cfg.data.height, cfg.data.width, limit=cfg.run.probe_samples)
+    picks = np.linspace(0, len(intr) - 1, min(200, len(intr))).round().astype(int)
+    probe.const_albedo, probe.const_reflection = training_means(torch.stack([intr[(int(i), False)] for i in picks]))
+    return probe.to(device)
 
 
 class StopRequest:
@@ -269,7 +308,7 @@ class StatsLog:
 
 
 def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None, real: str | None = None,
-        max_steps: int | None = None, device: str = "cpu", progress: bool = True) -> dict:
+        max_steps: int | None = None, device: str = "cpu", progress: bool = True, probe: str | None = None) -> dict:
     """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's).
 
     Ctrl-C or SIGTERM finishes the current step, saves a checkpoint and raises Interrupted.
@@ -280,7 +319,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
         device = f"cuda:{dd.local_rank}"
         torch.cuda.set_device(dd.local_rank)
     if dd.main:
-        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real)
+        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real, probe)
     if dd.world > 1:
         dist.barrier()
         if not dd.main:
@@ -316,11 +355,20 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     bs = cfg.data.batch_size
     s_m = StepSampler(len(intr), bs, cfg.run.seed, 1 if paired else 0, start, dd.rank, dd.world, cfg.data.hflip)
     s_i = StepSampler(len(reals), bs, cfg.run.seed, 1, start, dd.rank, dd.world, cfg.data.hflip)
-    it_m = infinite_loader(intr, s_m, cfg.data.workers)
-    it_i = infinite_loader(reals, s_i, cfg.data.workers)
+    # the main process builds the caches; the others open them once they are whole
+    for turn in ((True, False) if dd.world > 1 else (dd.main,)):
+        if turn == dd.main:
+            (ds_m, w_m), (ds_i, w_i) = (_maybe_cached(intr, run, "real_intrinsics" if paired else "intrinsics", 9, cfg,
+                                                      progress and dd.main),
+                                        _maybe_cached(reals, run, "real", 3, cfg, progress and dd.main))
+        if dd.world > 1 and turn:
+            dist.barrier()
+    it_m = infinite_loader(ds_m, s_m, w_m)
+    it_i = infinite_loader(ds_i, s_i, w_i)
     k = min(cfg.run.grid_samples, len(intr), len(reals))
     fixed_m = torch.stack([intr[(i, False)] for i in range(k)]).to(device)
     fixed_i = torch.stack([reals[(i, False)] for i in range(k)]).to(device)
+    probe_set = make_probe(opts, cfg, IntrinsicsData(Path(opts["intrinsics"]), h, w), device) if dd.main else None
 
     # ---------------------------------------------------------------- the step loop
     stats = StatsLog(run, start, dd.main)
@@ -358,8 +406,19 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
                 last_logs = logs
                 bar.update()
                 bar.set_postfix({k[0]: f"{logs[k]:.3f}" for k in ("G/total", "D/total") if k in logs}, refresh=False)
-                if step % cfg.run.log_every == 0 or step == end:
+                probing = probe_set is not None and (step == end or (cfg.run.probe_every
+                                                                      and step % cfg.run.probe_every == 0))
+                if probing:
+                    logs = {**logs, **evaluate_probe(model, probe_set)}
+                    if progress:
+                        tqdm.write(f"step {step}: probe normals {logs['probe/normal_deg']:.1f} deg (constant "
+                                   f"{logs['probe/const_normal_deg']:.1f}), albedo {logs['probe/albedo_l1']:.1f}, "
+                                   f"reflection {logs['probe/reflection_l1']:.1f}, R sensitivity "
+                                   f"{logs['probe/r_sensitivity']:.2f}")
+                if step % cfg.run.log_every == 0 or step == end or probing:
                     stats.log(step, schedulers["G"].get_last_lr()[0], logs)
+                if probing:
+                    write_probe_plot(run)
                 if dd.main and (step % cfg.run.grid_every == 0 or step == end):
                     write_grid(model, fixed_m, fixed_i, run.grid_path(step), autocast)
                 stopping = _any_rank(stop.signal is not None, dd.world, device)
@@ -382,6 +441,15 @@ def _any_rank(flag: bool, world: int, device: str) -> bool:
     t = torch.tensor([1.0 if flag else 0.0], device=device)
     dist.all_reduce(t)
     return bool(t.item() > 0)
+
+
+def write_probe_plot(run: RunFolder) -> None:
+    """probe.png in the run folder: the probe curves so far (atomic, so a viewer never sees half)."""
+    from blender_gen.dataset import atomic_write_bytes
+
+    png = probe_plot(run.stats(), run.root.name)
+    if png:
+        atomic_write_bytes(run.root / "probe.png", png)
 
 
 @torch.no_grad()

@@ -5,8 +5,9 @@ import torch
 import torch.nn.functional as F
 
 
-def gan_loss(logits: list[torch.Tensor], real: bool, kind: str) -> torch.Tensor:
-    """Multi-scale GAN loss, summed over scales as pix2pixHD and MUNIT do (each scale is a discriminator).
+def gan_loss(logits: list[torch.Tensor], real: bool, kind: str, reduce: str = "sum") -> torch.Tensor:
+    """Multi-scale GAN loss, summed over scales as pix2pixHD and MUNIT do (each scale is a
+    discriminator), or averaged over them (`reduce="mean"`).
 
     lsgan: mean (D - target)^2 (pix2pixHD/CycleGAN); bce: the paper's log-likelihood
     formula, -[t log sigmoid(D) + (1 - t) log(1 - sigmoid(D))].
@@ -18,7 +19,7 @@ def gan_loss(logits: list[torch.Tensor], real: bool, kind: str) -> torch.Tensor:
             total = total + F.mse_loss(d.float(), target.float())
         else:
             total = total + F.binary_cross_entropy_with_logits(d.float(), target.float())
-    return total
+    return total / len(logits) if reduce == "mean" else total
 
 
 def cycle_loss(recon: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:

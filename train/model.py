@@ -124,29 +124,49 @@ class IntrinsicAutoencoder(nn.Module):
     def _disc(self, name: str) -> nn.Module:
         return self.D_I if name == "D_I" else self.D_M
 
-    def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+    def loss_terms(self, out: dict[str, torch.Tensor]) -> dict[str, tuple[float, torch.Tensor]]:
+        """Every generator loss term as (weight, unweighted value); Eq. 7 is their weighted sum.
+        `iae-train diagnose` measures each term's gradient from this."""
         lc = self.loss_cfg
-        logs: dict[str, torch.Tensor] = {}
-        total = out["M_s"].new_zeros((), dtype=torch.float32)
+        terms: dict[str, tuple[float, torch.Tensor]] = {}
         if "rec_M" in out:
-            logs["G/ren_cycle"] = cycle_loss(self.select(out["rec_M"]), self.select(out["M_s"]), lc.smooth_l1_beta)
-            total = total + lc.w_ren * logs["G/ren_cycle"]
+            terms["G/ren_cycle"] = (lc.w_ren, cycle_loss(self.select(out["rec_M"]), self.select(out["M_s"]),
+                                                         lc.smooth_l1_beta))
         if "rec_I" in out:
-            logs["G/dec_cycle"] = cycle_loss(out["rec_I"], out["I_r"], lc.smooth_l1_beta)
-            total = total + lc.w_dec * logs["G/dec_cycle"]
+            terms["G/dec_cycle"] = (lc.w_dec, cycle_loss(out["rec_I"], out["I_r"], lc.smooth_l1_beta))
         if self.normal_output == "tanh" and lc.w_norm:
-            # L_norm on H_N(I_r) and H_N(R(M_s)), whichever this configuration computes
-            norm = sum(normal_length_loss(out[k][:, :3], lc.normal_threshold) for k in ("fake_M", "rec_M") if k in out)
-            logs["G/normal_length"] = norm
-            total = total + lc.w_norm * norm
+            norm = self._normal_length(out)
+            if norm is not None:
+                terms["G/normal_length"] = (lc.w_norm, norm)
+        mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))
             chunks = [torch.chunk(l, len(fakes)) for l in logits]
+            weight = lc.w_adv * (lc.w_adv_m if dname == "D_M" else 1.0) / (len(fakes) if mean else 1)
             for k, f in enumerate(fakes):
-                adv = gan_loss([c[k] for c in chunks], True, lc.gan)
-                logs[f"G/adv_{dname}_{f}"] = adv
-                total = total + lc.w_adv * adv
-        return finish_logs(total, logs, "G")
+                terms[f"G/adv_{dname}_{f}"] = (weight, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
+        return terms
+
+    def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
+        terms = self.loss_terms(out)
+        total = out["M_s"].new_zeros((), dtype=torch.float32)
+        for weight, value in terms.values():
+            total = total + weight * value
+        return finish_logs(total, {k: v for k, (_, v) in terms.items()}, "G")
+
+    def _normal_length(self, out: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """L_norm. "threshold" (the paper, as read here): on H_N(I_r) and H_N(R(M_s)) wherever the
+        prediction is longer than loss.normal_threshold. "car": on H_N(R(M_s)) where M_s has an
+        object (the one output whose object mask is known), so it never acts on the background."""
+        lc = self.loss_cfg
+        if lc.normal_length_on == "car":
+            if "rec_M" not in out:
+                return None
+            on = (out["M_s"][:, :3].norm(dim=1) > 0.5).float()
+            length = out["rec_M"][:, :3].float().norm(dim=1)
+            return ((1.0 - length).abs() * on).sum() / on.sum().clamp_min(1.0)
+        terms = [normal_length_loss(out[k][:, :3], lc.normal_threshold) for k in ("fake_M", "rec_M") if k in out]
+        return sum(terms) if terms else None
 
     def discriminator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         """Real vs the (detached) fakes; halved as in pix2pixHD so D learns at half G's pace."""
@@ -156,8 +176,9 @@ class IntrinsicAutoencoder(nn.Module):
         for dname, (real, fakes) in self.discriminator_inputs(out).items():
             batch = torch.cat([real] + [out[f].detach() for f in fakes])
             chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._disc(dname)(batch)]
-            loss_real = gan_loss([c[0] for c in chunks], True, lc.gan)
-            loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan) for k in range(len(fakes))) / len(fakes)
+            loss_real = gan_loss([c[0] for c in chunks], True, lc.gan, lc.gan_reduce)
+            loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan, lc.gan_reduce)
+                            for k in range(len(fakes))) / len(fakes)
             logs[f"D/{dname}_real"], logs[f"D/{dname}_fake"] = loss_real, loss_fake
             total = total + 0.5 * (loss_real + loss_fake)
         return finish_logs(total, logs, "D")

@@ -1,0 +1,192 @@
+"""A/B of training objectives on in-memory data, with the probe curves of `train.probe`.
+
+The measurement behind the README's "Making it learn" tables. It trains the project's own
+model, losses, optimisers and steps (`train.model`, `train.loop.generator_step`,
+`discriminator_step`) on tensors packed once from datasets, so many variants and seeds run
+at once on one GPU (or, slowly, on the CPU) without EXR decoding.
+
+  pack   datasets -> one .npz at training size, for a setting:
+           protocol  "real" = PBR images with their backgrounds (the paper's protocol)
+           s1        "real" = PBR images, background masked to black (every pixel expressible)
+           s0        "real" = the analytic shading (train.sanity.shade) of other intrinsics
+  run    one variant and seed -> a JSON-lines curve of probe figures
+  grid   variants x seeds as parallel processes (one thread each)
+
+  python bench/objective_sweep.py pack --setting s0 --intrinsics I --probe P --out s0.npz
+  python bench/objective_sweep.py grid --data s0.npz --variants bench/variants.toml --seeds 0 1 --steps 8000
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def pack(args) -> None:
+    import torch
+
+    from train.probe import load_probe
+    from train.sanity import load_pbr, load_stacks, masked_black, shade_network
+
+    h, w = args.height, args.width
+    ms = load_stacks(Path(args.intrinsics), h, w, args.n_intrinsics) if args.setting != "protocol_env" else None
+    probe = load_probe(Path(args.probe), h, w, limit=args.n_probe)
+    if args.setting == "s0":  # half the intrinsics are M_s, the other half shaded are the "real" images
+        half = len(ms) // 2
+        ms, yr = ms[:half], ms[half:]
+        xr = shade_network(yr)
+        probe.images = shade_network(probe.maps)
+    elif args.setting == "protocol_env":  # M_s = PBR intrinsics whose background reflection is the scene behind the car
+        xs, ms, mk = load_pbr(Path(args.intrinsics), h, w, args.n_intrinsics)
+        ms[:, 6:9] = torch.where(mk >= 0.5, ms[:, 6:9], xs)
+        xr, yr, mr = load_pbr(Path(args.real), h, w, args.n_real)
+    else:
+        xr, yr, mr = load_pbr(Path(args.real), h, w, args.n_real)
+        if args.setting == "s1":
+            xr = masked_black(xr, mr)
+            probe.images = masked_black(probe.images, probe.masks)
+    f16 = lambda t: t.numpy().astype(np.float16)  # noqa: E731
+    np.savez_compressed(args.out, MS=f16(ms), XR=f16(xr), YR=f16(yr), PX=f16(probe.images), PY=f16(probe.maps),
+                        PM=f16(probe.masks), setting=args.setting)
+    print(f"{args.out}: M_s {tuple(ms.shape)}, real {tuple(xr.shape)}, probe {tuple(probe.images.shape)}")
+
+
+def run(args) -> None:
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from train.config import load_config
+    from train.data import flip_stack
+    from train.loop import build_optimisation, discriminator_step, generator_step
+    from train.model import build_model
+    from train.probe import ProbeSet, evaluate_probe, training_means
+
+    dev = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+    z = np.load(args.data)
+    t = {k: torch.from_numpy(z[k].astype(np.float32)).to(dev) for k in ("MS", "XR", "YR", "PX", "PY", "PM")}
+    h, w = t["MS"].shape[2:]
+    sets = [f"data.height={h}", f"data.width={w}", f"data.batch_size={args.batch}", f"run.seed={args.seed}",
+            f"optim.max_steps={args.steps}", f"optim.decay_start={int(args.steps * args.decay)}", *args.set]
+    cfg = load_config(args.config, sets)
+    torch.manual_seed(args.seed)
+    model = build_model(cfg).to(dev)
+    g_params, d_params, opts, scheds = build_optimisation(cfg, model)
+    ca, cr = training_means(t["MS"])
+    probe = ProbeSet(t["PX"], t["PY"], t["PM"], ca, cr)
+    paired = getattr(model, "paired", False)
+    gen = torch.Generator(device="cpu").manual_seed(args.seed)
+    out = open(args.out, "w") if args.out else sys.stdout
+
+    def draw(x: torch.Tensor, idx: torch.Tensor, flips: torch.Tensor, stack: bool) -> torch.Tensor:
+        b = x[idx.to(dev)].clone()
+        for j in torch.nonzero(flips).flatten().tolist():
+            b[j] = flip_stack(b[j]) if stack else b[j].flip(-1)
+        return b
+
+    t0 = time.time()
+    for step in range(1, args.steps + 1):
+        ir = torch.randint(0, len(t["XR"]), (args.batch,), generator=gen)
+        im = ir if paired else torch.randint(0, len(t["MS"]), (args.batch,), generator=gen)
+        f_m, f_i = torch.rand(args.batch, generator=gen) < 0.5, torch.rand(args.batch, generator=gen) < 0.5
+        if paired:
+            f_m = f_i
+        m_s = draw(t["YR"] if paired else t["MS"], im, f_m, True)
+        i_r = draw(t["XR"], ir, f_i, False)
+        model.train()
+        o, g_logs = generator_step(model, opts["G"], g_params, m_s, i_r)
+        d_logs = discriminator_step(model, opts["D"], d_params, o) if "D" in opts else {}
+        for s in scheds.values():
+            s.step()
+        late = args.minutes is not None and time.time() - t0 > args.minutes * 60
+        if step % args.every == 0 or step == args.steps or late:
+            row = {"step": step, "t": round(time.time() - t0, 1), "variant": args.name, "seed": args.seed,
+                   **{k: round(v, 4) for k, v in evaluate_probe(model, probe).items()},
+                   **{k: round(v, 4) for k, v in {**g_logs, **d_logs}.items()}}
+            out.write(json.dumps(row) + "\n")
+            out.flush()
+        if late:
+            break
+    if args.save:
+        from safetensors.torch import save_file
+
+        save_file({k: v.contiguous().cpu() for k, v in model.state_dict().items()}, args.save)
+
+
+def grid(args) -> None:
+    variants = tomllib.loads(Path(args.variants).read_text())
+    names = args.only or list(variants)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    procs = []
+    for name in names:
+        v = variants[name]
+        for seed in args.seeds:
+            cmd = [sys.executable, __file__, "run", "--data", args.data, "--name", name, "--seed", str(seed),
+                   "--steps", str(args.steps), "--every", str(args.every), "--config", v.get("config", "cpu-small"),
+                   "--device", args.device, "--batch", str(args.batch),
+                   *(["--minutes", str(args.minutes)] if args.minutes else []),
+                   "--out", str(Path(args.out) / f"{name}_s{seed}.jsonl")]
+            cmd += [a for s in v.get("set", []) for a in ("--set", s)]
+            procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
+    bad = 0
+    for name, seed, p in procs:
+        bad += p.wait() != 0
+    print(f"{len(procs) - bad}/{len(procs)} runs finished in {args.out}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("pack")
+    p.add_argument("--setting", choices=("protocol", "protocol_env", "s1", "s0"), required=True)
+    p.add_argument("--intrinsics", required=True)
+    p.add_argument("--real", default=None)
+    p.add_argument("--probe", required=True)
+    p.add_argument("--height", type=int, default=32)
+    p.add_argument("--width", type=int, default=64)
+    p.add_argument("--n-intrinsics", type=int, default=None)
+    p.add_argument("--n-real", type=int, default=None)
+    p.add_argument("--n-probe", type=int, default=48)
+    p.add_argument("--out", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("--data", required=True)
+    r.add_argument("--name", default="run")
+    r.add_argument("--config", default="cpu-small")
+    r.add_argument("--set", action="append", default=[])
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--steps", type=int, default=3000)
+    r.add_argument("--every", type=int, default=250)
+    r.add_argument("--batch", type=int, default=4)
+    r.add_argument("--decay", type=float, default=0.5, help="decay_start as a fraction of --steps")
+    r.add_argument("--device", default="auto")
+    r.add_argument("--threads", type=int, default=1)
+    r.add_argument("--minutes", type=float, default=None, help="stop (with a last probe row) after this long")
+    r.add_argument("--out", default=None)
+    r.add_argument("--save", default=None)
+    g = sub.add_parser("grid")
+    g.add_argument("--data", required=True)
+    g.add_argument("--variants", required=True)
+    g.add_argument("--only", nargs="*", default=None)
+    g.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    g.add_argument("--steps", type=int, default=3000)
+    g.add_argument("--every", type=int, default=250)
+    g.add_argument("--batch", type=int, default=4)
+    g.add_argument("--device", default="auto")
+    g.add_argument("--minutes", type=float, default=None)
+    g.add_argument("--out", required=True)
+    a = ap.parse_args()
+    {"pack": pack, "run": run, "grid": grid}[a.cmd](a)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,264 @@
+"""Making the model learn: probe figures, the loss options, the training-size cache, the
+gradient diagnosis, the sanity sets and the environment background of intrinsics."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from train.config import load_config
+from train.data import CachedTensors, IntrinsicsData, RealImages, flip_stack
+from train.model import build_model
+from train.probe import ProbeSet, decomposition_scores, evaluate_probe, input_sensitivity, training_means
+from train.sanity import LIGHT, shade_network, srgb_decode, srgb_encode
+
+from .train_helpers import TINY, tiny_intrinsics, tiny_overrides
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    base = tmp_path_factory.mktemp("learn")
+    return {"intr": tiny_intrinsics(base / "intr", n=6, seed=0),
+            "pbr": tiny_intrinsics(base / "pbr", n=4, seed=5, kind="pbr")}
+
+
+def _probe(n=4, h=16, w=32, seed=0) -> ProbeSet:
+    g = torch.Generator().manual_seed(seed)
+    maps = torch.rand(n, 9, h, w, generator=g) * 2 - 1
+    maps[:, :3] = torch.nn.functional.normalize(maps[:, :3], dim=1)
+    masks = torch.zeros(n, 1, h, w)
+    masks[:, :, 4:12, 8:24] = 1
+    return ProbeSet(torch.rand(n, 3, h, w, generator=g) * 2 - 1, maps, masks)
+
+
+def test_probe_scores_are_zero_for_the_truth_and_known_for_a_constant():
+    p = _probe()
+    perfect = decomposition_scores(p.maps, p)
+    assert perfect["normal_deg"] == pytest.approx(0, abs=0.05)
+    assert perfect["albedo_l1"] == pytest.approx(0) and perfect["reflection_l1"] == pytest.approx(0)
+    # one albedo channel off by 0.2 network units everywhere: 0.2 * 127.5 / 3 on the 0-255 scale
+    off = p.maps.clone()
+    off[:, 3] += 0.2
+    assert decomposition_scores(off, p)["albedo_l1"] == pytest.approx(0.2 * 127.5 / 3, rel=1e-4)
+    # a normal turned by 90 degrees on every pixel
+    turned = p.maps.clone()
+    n = p.maps[:, :3]
+    turned[:, :3] = torch.nn.functional.normalize(torch.cross(n, torch.roll(n, 1, dims=1), dim=1), dim=1)
+    assert decomposition_scores(turned, p)["normal_deg"] == pytest.approx(90, abs=0.1)
+
+
+def test_input_sensitivity_is_zero_for_a_constant_renderer_and_one_for_a_perfect_one():
+    p = _probe()
+    on = p.masks[:, 0] >= 0.5
+    assert input_sensitivity(p.images, p.images, on) == pytest.approx(1.0)
+    same = p.images[:1].expand_as(p.images)
+    assert input_sensitivity(same, p.images, on) == 0.0
+    assert input_sensitivity(0.5 * p.images, p.images, on) == pytest.approx(0.5)
+
+
+def test_training_means_average_object_pixels_in_linear_light():
+    maps = torch.zeros(2, 9, 4, 4)
+    maps[:, 2, :, :2] = 1.0  # object on the left half
+    maps[0, 3:6, :, :2] = srgb_encode(torch.tensor(0.2)) * 2 - 1
+    maps[1, 3:6, :, :2] = srgb_encode(torch.tensor(0.6)) * 2 - 1
+    maps[:, 3:6, :, 2:] = 1.0  # background values must not count
+    albedo, _ = training_means(maps)
+    assert float(srgb_decode((albedo[0] + 1) / 2)) == pytest.approx(0.4, abs=1e-4)
+
+
+def test_evaluate_probe_reports_every_figure_and_restores_train_mode():
+    cfg = load_config("cpu-small", tiny_overrides())
+    model = build_model(cfg)
+    model.train()
+    p = _probe(h=32, w=64)
+    p.const_albedo, p.const_reflection = training_means(p.maps)
+    figs = evaluate_probe(model, p)
+    assert model.training
+    for key in ("normal_deg", "albedo_l1", "reflection_l1", "normal_corr_x", "normal_corr_y", "normal_corr_z",
+                "const_normal_deg", "const_albedo_l1", "const_reflection_l1", "render_l1", "r_sensitivity"):
+        assert np.isfinite(figs[f"probe/{key}"]), key
+
+
+def test_s0_shader_is_the_stated_formula():
+    maps = torch.zeros(1, 9, 2, 2)
+    maps[0, 0:3, 0, 0] = LIGHT  # facing the light, white albedo, no reflection: linear 1.0
+    maps[0, 3:6, 0, 0] = 1.0
+    maps[0, 0:3, 0, 1] = -LIGHT  # facing away: ambient 0.3 of albedo 0.5, plus 0.5 x reflection 0.2
+    maps[0, 3:6, 0, 1] = srgb_encode(torch.tensor(0.5)) * 2 - 1
+    maps[0, 6:9, 0, 1] = srgb_encode(torch.tensor(0.2)) * 2 - 1
+    maps[0, 3:9, 1, :] = -1.0  # background: black everything, zero normal
+    img = shade_network(maps)
+    lin = srgb_decode((img + 1) / 2)
+    assert torch.allclose(lin[0, :, 0, 0], torch.ones(3), atol=1e-5)
+    assert torch.allclose(lin[0, :, 0, 1], torch.full((3,), 0.3 * 0.5 + 0.5 * 0.2), atol=1e-5)
+    assert torch.all(img[0, :, 1, :] == -1)
+
+
+def test_normal_length_on_the_car_never_touches_the_background():
+    cfg = load_config("cpu-small", tiny_overrides() + ["loss.normal_length_on=car"])
+    model = build_model(cfg)
+    m_s = torch.zeros(1, 9, 32, 64)
+    m_s[:, 2, 8:24, 16:48] = 1.0
+    rec = (torch.randn(1, 9, 32, 64) * 0.5).requires_grad_()
+    fake = (torch.randn(1, 9, 32, 64) * 0.5).requires_grad_()
+    loss = model._normal_length({"M_s": m_s, "rec_M": rec, "fake_M": fake})
+    loss.backward()
+    assert fake.grad is None  # H(I_r) has no known mask: untouched
+    assert torch.all(rec.grad[:, :, :8] == 0) and rec.grad[:, :3, 8:24, 16:48].abs().sum() > 0
+    # the paper's threshold rule acts wherever a prediction is long, background included
+    cfg2 = load_config("cpu-small", tiny_overrides() + ["loss.normal_length_on=threshold"])
+    rec2 = torch.zeros(1, 9, 32, 64)
+    rec2[:, 2] = 0.8
+    rec2.requires_grad_()
+    build_model(cfg2)._normal_length({"M_s": m_s, "rec_M": rec2}).backward()
+    assert rec2.grad[:, 2, :8].abs().sum() > 0
+
+
+def test_gan_terms_averaged_over_scales_and_fakes():
+    torch.manual_seed(0)
+    sets = tiny_overrides() + ["loss.w_adv_m=1"]
+    out_sum = build_model(load_config("cpu-small", sets + ["loss.gan_reduce=sum"]))
+    torch.manual_seed(0)
+    out_mean = build_model(load_config("cpu-small", sets + ["loss.gan_reduce=mean"]))
+    m, i = torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1
+    t_sum = out_sum.loss_terms(out_sum.forward_all(m, i))
+    t_mean = out_mean.loss_terms(out_mean.forward_all(m, i))
+    scales = 2  # model.d_scales
+    for k in t_sum:
+        if k.startswith("G/adv_"):
+            assert float(t_mean[k][1].detach()) == pytest.approx(float(t_sum[k][1].detach()) / scales, rel=1e-5)
+            assert t_mean[k][0] == pytest.approx(t_sum[k][0] / 2)  # two fakes per shared discriminator
+
+
+def test_generator_loss_is_the_weighted_sum_of_its_terms():
+    model = build_model(load_config("cpu-small", tiny_overrides()))
+    out = model.forward_all(torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1)
+    total, logs = model.generator_loss(out)
+    terms = model.loss_terms(out)
+    assert float(total) == pytest.approx(sum(w * float(v) for w, v in terms.values()), rel=1e-5)
+    assert set(logs) == set(terms) | {"G/total"}
+
+
+def test_cache_gives_the_decoded_tensors_and_rebuilds_when_the_data_changes(data, tmp_path):
+    ds = IntrinsicsData(data["intr"], 32, 64)
+    cache = CachedTensors(ds, tmp_path / "c" / "intr.npy", stack=True)
+    for i in range(len(ds)):
+        assert torch.equal(cache[(i, False)], ds[(i, False)])
+        assert torch.equal(cache[(i, True)], flip_stack(ds[(i, False)]))
+    reals = RealImages(data["pbr"], 32, 64)
+    rc = CachedTensors(reals, tmp_path / "c" / "real.npy", stack=False)
+    assert torch.equal(rc[(1, True)], reals[(1, True)])
+    # a stale key (another dataset content) is rebuilt, a half-written file without its key is never used
+    meta = tmp_path / "c" / "intr.json"
+    key = json.loads(meta.read_text())
+    meta.write_text(json.dumps({**key, "content": "0" * 64}))
+    np.save(tmp_path / "c" / "intr.npy", np.zeros((len(ds), 9, 32, 64), np.float32))
+    again = CachedTensors(ds, tmp_path / "c" / "intr.npy", stack=True)
+    assert torch.equal(again[(0, False)], ds[(0, False)])
+    meta.unlink()
+    assert torch.equal(CachedTensors(ds, tmp_path / "c" / "intr.npy", stack=True)[(2, False)], ds[(2, False)])
+
+
+def _fit(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "train.cli", "fit", *args], capture_output=True, text=True, cwd=ROOT)
+
+
+def test_fit_probe_logs_curves_and_diagnose_reads_the_run(data, tmp_path):
+    run = tmp_path / "run"
+    proc = _fit("--config", "cpu-small", "--intrinsics", str(data["intr"]), "--real", str(data["pbr"]),
+                "--probe", str(data["pbr"]), "--run-dir", str(run), "--max-steps", "4", "--quiet", *TINY,
+                "--set", "run.probe_every=2")
+    assert proc.returncode == 0, proc.stderr
+    rows = [json.loads(x) for x in (run / "stats.jsonl").read_text().splitlines()]
+    probed = [r["step"] for r in rows if "probe/normal_deg" in r]
+    assert probed == [2, 4]
+    assert (run / "probe.png").stat().st_size > 1000
+    assert json.loads((run / "training_options.json").read_text())["probe"] == str(data["pbr"].resolve())
+    assert (run / "cache" / "intrinsics_32x64.npy").exists()
+    # resumed without --probe: the saved probe goes on
+    proc = _fit("--run-dir", str(run), "--max-steps", "6", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    rows = [json.loads(x) for x in (run / "stats.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if "probe/normal_deg" in r] == [2, 4, 6]
+
+    out = tmp_path / "diag.json"
+    proc = subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--probe", str(data["pbr"]),
+                           "--batch", "2", "--json", str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert "ren_cycle" in proc.stdout and "H_N |g|" in proc.stdout
+    terms = json.loads(out.read_text())["terms"]
+    assert all(-1 <= row[net]["cosine"] <= 1 for row in terms.values() for net in ("H_N", "H_A", "H_F", "R"))
+    # D_I's term on R(M_s) cannot reach H; the normal-length term (car only) cannot reach H_A or H_F
+    assert terms["G/adv_D_I_fake_I"]["H_N"]["grad_norm"] == 0
+    assert terms["G/normal_length"]["H_A"]["grad_norm"] == 0 and terms["G/normal_length"]["H_F"]["grad_norm"] == 0
+    assert terms["G/ren_cycle"]["H_N"]["grad_norm"] > 0
+
+
+def test_diagnose_of_a_baseline_is_a_one_line_error(data, tmp_path):
+    run = tmp_path / "cg"
+    proc = _fit("--config", "cyclegan", "--intrinsics", str(data["intr"]), "--real", str(data["pbr"]),
+                "--run-dir", str(run), "--max-steps", "1", "--quiet",
+                *[a for s in tiny_overrides("cyclegan") for a in ("--set", s)])
+    assert proc.returncode == 0, proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--probe", str(data["pbr"])],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr and "model.kind = 'iae'" in proc.stderr
+
+
+def test_sanity_sets_shade_and_mask_what_they_derive(data, tmp_path):
+    from blender_gen.dataset import open_dataset
+    from eval.sanity import _masked, _shade, derive
+
+    s0 = derive(data["pbr"], tmp_path / "s0", "pbr", [0, 2], _shade, "S0 shading")
+    s1 = derive(data["pbr"], tmp_path / "s1", "pbr", [1], _masked, "S1 mask")
+    src = open_dataset(data["pbr"])
+    a, b = open_dataset(s0), open_dataset(s1)
+    assert len(a) == 2 and len(b) == 1 and a.info["complete"]
+    got = a.load(1, ["rgb", "normal"])
+    want = _shade(src.load(2))
+    assert np.allclose(got["rgb"], want["rgb"], atol=2e-3)  # half-float EXR
+    assert np.array_equal(got["normal"], src.load(2, ["normal"])["normal"])
+    m = b.load(0, ["rgb", "mask"])
+    assert np.all(m["rgb"][m["mask"][..., 0] < 0.5] == 0)
+    # an existing complete set of the same derivation is kept; another derivation is rebuilt
+    stamp = (s0 / "dataset.json").stat().st_mtime_ns
+    derive(data["pbr"], tmp_path / "s0", "pbr", [0, 2], _shade, "S0 shading")
+    assert (s0 / "dataset.json").stat().st_mtime_ns == stamp
+    derive(data["pbr"], tmp_path / "s0", "pbr", [0], _shade, "S0 shading")
+    assert len(open_dataset(s0)) == 1
+
+
+def test_environment_background_shows_what_the_pbr_image_shows_behind_the_car(tmp_path):
+    """The reflection layer's background is the environment seen directly (Cycles' Environment
+    pass); the PBR image of the same recipe shows the same sky and ground, plus the car's shadow."""
+    from blender_gen.dataset import open_dataset
+
+    from .conftest import run_gen
+
+    common = ["--count", "2", "--resolution", "96x48", "--seed", "4", "--cars", "procedural:train", "--envmap",
+              "procedural", "--quiet"]
+    run_gen("intrinsics", "--out", str(tmp_path / "env"), "--background", "environment", *common)
+    run_gen("intrinsics", "--out", str(tmp_path / "black"), "--background", "black", *common)
+    run_gen("pbr", "--out", str(tmp_path / "pbr"), "--samples", "16", *common)
+    env, black, pbr = (open_dataset(tmp_path / k) for k in ("env", "black", "pbr"))
+    assert "background" in env.info["recipe"] and "background" not in black.info["recipe"]
+    for i in range(2):
+        e, b, p = env.load(i), black.load(i), pbr.load(i)
+        car = e["mask"][..., 0] >= 1.0
+        bg = e["mask"][..., 0] <= 0.0
+        # car and camera turn instead of the environment: the same layers up to rounding
+        assert np.array_equal(e["mask"], b["mask"])
+        assert np.abs(e["normal"] - b["normal"]).max() < 5e-3
+        diff = np.abs(e["reflection"][car] - b["reflection"][car])
+        assert diff.mean() < 1e-3 and diff.max() < 0.02
+        assert np.all(b["reflection"][bg] == 0) and e["reflection"][bg].mean() > 0.05
+        rel = np.abs(e["reflection"][bg] - p["rgb"][bg]).mean() / p["rgb"][bg].mean()
+        assert rel < 0.2, rel  # what differs is the car's shadow on the ground and sampling noise

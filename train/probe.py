@@ -1,0 +1,193 @@
+"""Validation while training: H's decomposition errors and R's input sensitivity on a probe set.
+
+A probe is a set of images with their true intrinsics and object masks (a PBR dataset), held
+at training size in memory and never used for gradients. Its figures are the Table-3 errors
+of `eval.decomposition` computed on network-space tensors (|difference| x 127.5 in network
+space is the 8-bit sRGB L1 the report prints), so a curve in `stats.jsonl` and the final
+table agree up to resizing.
+
+R's *input sensitivity*: how much R's output changes between different intrinsics, relative
+to how much the true images of those intrinsics differ (car pixels, pairs of probe samples).
+A renderer that draws one picture for every input scores 0, a perfect one 1.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+PROBE_PREFIX = "probe/"
+
+
+@dataclass
+class ProbeSet:
+    """(n, 3, h, w) images, (n, 9, h, w) true intrinsics, (n, 1, h, w) masks, network space; masks in [0, 1]."""
+
+    images: torch.Tensor
+    maps: torch.Tensor
+    masks: torch.Tensor
+    # constant predictor's albedo and reflection (network space, 3 values each): the training means
+    const_albedo: torch.Tensor | None = None
+    const_reflection: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.images)
+        if n < 2 or len(self.maps) != n or len(self.masks) != n:
+            raise ValueError(f"a probe needs at least 2 samples with images, maps and masks alike (got {n})")
+
+    def to(self, device: str | torch.device) -> "ProbeSet":
+        mv = {k: (getattr(self, k).to(device) if getattr(self, k) is not None else None)
+              for k in ("images", "maps", "masks", "const_albedo", "const_reflection")}
+        return ProbeSet(**mv)
+
+
+def load_probe(root: Path, height: int, width: int, limit: int | None = 64) -> ProbeSet:
+    """The first `limit` samples of a PBR dataset at training size (cover-crop as in training)."""
+    from blender_gen.conversions import to_network
+    from blender_gen.dataset import DatasetError, INTRINSIC_LAYERS, open_dataset
+
+    from .data import cover_crop
+
+    ds = open_dataset(Path(root), kinds=("pbr",))
+    n = len(ds) if limit is None else min(limit, len(ds))
+    if n < 2:
+        raise DatasetError(f"--probe {root}: needs at least 2 finished PBR samples (has {len(ds)})")
+    imgs, maps, masks = [], [], []
+    for i in range(n):
+        layers = ds.load(i, ["rgb", *INTRINSIC_LAYERS, "mask"])
+        stack = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], axis=-1)
+        for dst, arr in ((imgs, to_network("rgb", layers["rgb"])), (maps, stack),
+                         (masks, np.clip(layers["mask"][..., :1].astype(np.float32), 0, 1))):
+            dst.append(cover_crop(torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).contiguous(), height, width))
+    return ProbeSet(torch.stack(imgs), torch.stack(maps), torch.stack(masks))
+
+
+def training_means(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean albedo and reflection over object pixels (|normal| > 0.5) of network-space stacks,
+    averaged in linear light and returned in network space: the constant predictor's values."""
+    on = (maps[:, 0:3].norm(dim=1, keepdim=True) > 0.5).float()
+    from .sanity import srgb_decode, srgb_encode
+
+    out = []
+    for sl in (slice(3, 6), slice(6, 9)):
+        mean = (srgb_decode((maps[:, sl] + 1) * 0.5) * on).sum(dim=(0, 2, 3)) / on.sum().clamp_min(1)
+        out.append(srgb_encode(mean) * 2 - 1)
+    return out[0], out[1]
+
+
+def _angles(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    cos = (F.normalize(pred, dim=1, eps=1e-8) * F.normalize(gt, dim=1, eps=1e-8)).sum(1)
+    return torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+
+
+def _corr(u: torch.Tensor, v: torch.Tensor) -> float:
+    u, v = u - u.mean(), v - v.mean()
+    d = (u.norm() * v.norm()).item()
+    return float((u * v).sum().item() / d) if d > 0 else 0.0
+
+
+def _per_sample_mean(x: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+    """(n, h, w) values, (n, h, w) bool mask -> mean over masked pixels per sample."""
+    return (x * on).sum(dim=(1, 2)) / on.sum(dim=(1, 2)).clamp_min(1)
+
+
+@torch.no_grad()
+def decomposition_scores(pred: torch.Tensor, probe: ProbeSet, prefix: str = "") -> dict[str, float]:
+    """Table-3 errors of (n, 9, h, w) network-space predictions on the probe's object pixels."""
+    gt, on = probe.maps, probe.masks[:, 0] >= 0.5
+    keep = on.flatten(1).any(1)
+    pred, gt, on = pred[keep], gt[keep], on[keep]
+    ang = _angles(pred[:, 0:3], gt[:, 0:3])
+    out = {f"{prefix}normal_deg": float(_per_sample_mean(ang, on).mean())}
+    for name, sl in (("albedo_l1", slice(3, 6)), ("reflection_l1", slice(6, 9))):
+        err = (pred[:, sl] - gt[:, sl]).abs().mean(1) * 127.5  # = 8-bit sRGB L1
+        out[f"{prefix}{name}"] = float(_per_sample_mean(err, on).mean())
+    return out
+
+
+@torch.no_grad()
+def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
+    """`probe/...` figures of a model of any kind: H on the probe images, R on their intrinsics."""
+    was_training = model.training
+    model.eval()
+    try:
+        preds, renders = [], []
+        gen = torch.Generator(device=probe.images.device).manual_seed(0)  # fixed style codes (MUNIT)
+        for i in range(0, len(probe.images), batch):
+            preds.append(model.decompose(probe.images[i:i + batch]).float())
+            renders.append(model.render(probe.maps[i:i + batch], generator=gen).float())
+    finally:
+        model.train(was_training)
+    pred, ren = torch.cat(preds), torch.cat(renders)
+    on = probe.masks[:, 0] >= 0.5
+    out = {f"{PROBE_PREFIX}{k}": v for k, v in decomposition_scores(pred, probe).items()}
+    for c, axis in enumerate("xyz"):
+        out[f"{PROBE_PREFIX}normal_corr_{axis}"] = _corr(pred[:, c][on], probe.maps[:, c][on])
+    # the constant predictor on the same pixels, for reference in every curve
+    const = torch.zeros_like(probe.maps)
+    const[:, 2] = 1.0
+    if probe.const_albedo is not None:
+        const[:, 3:6] = probe.const_albedo.view(1, 3, 1, 1)
+        const[:, 6:9] = probe.const_reflection.view(1, 3, 1, 1)
+    for k, v in decomposition_scores(const, probe).items():
+        if k == "normal_deg" or probe.const_albedo is not None:
+            out[f"{PROBE_PREFIX}const_{k}"] = v
+    # R: error against the true images on object pixels, and input sensitivity
+    err = (ren - probe.images).abs().mean(1) * 127.5
+    out[f"{PROBE_PREFIX}render_l1"] = float(_per_sample_mean(err, on).mean())
+    out[f"{PROBE_PREFIX}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
+    return out
+
+
+def input_sensitivity(renders: torch.Tensor, images: torch.Tensor, on: torch.Tensor) -> float:
+    """Mean |R(M_i) - R(M_j)| over |I_i - I_j| for consecutive pairs (i, i+1), on pixels that are
+    object in both. 0: R ignores its input; 1: R's outputs differ as much as the true images."""
+    both = (on[:-1] & on[1:]).unsqueeze(1).float()
+    d_r = ((renders[:-1] - renders[1:]).abs() * both).sum()
+    d_i = ((images[:-1] - images[1:]).abs() * both).sum()
+    return float(d_r / d_i) if d_i > 0 else 0.0
+
+
+def probe_plot(rows: list[dict], title: str = "") -> bytes | None:
+    """PNG of the probe curves in `stats.jsonl` rows (None when no row has them): H's errors
+    beside the constant predictor's (dashed), normal correlations and R's input sensitivity."""
+    rows = [r for r in rows if f"{PROBE_PREFIX}normal_deg" in r]
+    if not rows:
+        return None
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [r["step"] for r in rows]
+
+    def series(key: str) -> list[float]:
+        return [r.get(PROBE_PREFIX + key, np.nan) for r in rows]
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
+    axes[0].plot(steps, series("normal_deg"), label="H normals", color="C0")
+    axes[0].plot(steps, series("const_normal_deg"), "--", label="constant predictor", color="C0", alpha=0.6)
+    axes[0].set_ylabel("mean angle (deg)")
+    for k, (key, name) in enumerate((("albedo_l1", "albedo"), ("reflection_l1", "reflection"), ("render_l1", "R image"))):
+        axes[1].plot(steps, series(key), label=f"{name}", color=f"C{k + 1}")
+        if key != "render_l1":
+            axes[1].plot(steps, series(f"const_{key}"), "--", color=f"C{k + 1}", alpha=0.6, label=f"{name}, constant")
+    axes[1].set_ylabel("L1 (0-255 sRGB, object pixels)")
+    for k, axis in enumerate("xyz"):
+        axes[2].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
+    axes[2].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
+    axes[2].set_ylim(-0.2, 1.3)
+    for ax, what in zip(axes, ("H: normals", "H: albedo, reflection; R", "agreement")):
+        ax.set_xlabel("step")
+        ax.set_title(f"{title}: {what}" if title else what, fontsize=9)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    return buf.getvalue()
