@@ -36,7 +36,7 @@ demo: $(STAMP)
 	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics_unseen --count 24 --seed 3 --workers 2
 	$(VENV)/bin/iae-gen cars --out $(DEMO)
 	$(VENV)/bin/iae-train fit --config cpu-small --intrinsics $(DEMO)/intrinsics --real $(DEMO)/pbr_real \
-		--run-dir $(DEMO)/run --max-steps $(DEMO_STEPS)
+		--probe $(DEMO)/pbr_eval --run-dir $(DEMO)/run --max-steps $(DEMO_STEPS) --set run.probe_every=50
 	$(VENV)/bin/iae-eval report $(DEMO)/run --data $(DEMO)/pbr_eval --real $(DEMO)/pbr_real \
 		--intrinsics $(DEMO)/intrinsics_unseen --out $(DEMO)/report --quiet
 	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"

@@ -19,7 +19,7 @@ from blender_gen.dataset import DatasetError, open_dataset
 from train.data import image_files
 
 # Recipe fields that do not change which car, paint, environment and camera a sample shows.
-_NOT_SAMPLE_FIELDS = {"kind", "samples", "width", "height"}
+_NOT_SAMPLE_FIELDS = {"kind", "samples", "width", "height", "background"}
 
 
 class ProtocolError(ValueError):

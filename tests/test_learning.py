@@ -262,3 +262,21 @@ def test_environment_background_shows_what_the_pbr_image_shows_behind_the_car(tm
         assert np.all(b["reflection"][bg] == 0) and e["reflection"][bg].mean() > 0.05
         rel = np.abs(e["reflection"][bg] - p["rgb"][bg]).mean() / p["rgb"][bg].mean()
         assert rel < 0.2, rel  # what differs is the car's shadow on the ground and sampling noise
+
+
+def test_the_background_option_does_not_hide_a_shared_sample_recipe(tmp_path):
+    """An evaluation PBR set with the training intrinsics' recipe shows their poses, whichever
+    background the intrinsics' reflection layer has: the protocol check still refuses it."""
+    from eval.protocol import ProtocolError, check_sets, describe
+
+    def with_recipe(root, **recipe):
+        info = json.loads((root / "dataset.json").read_text())
+        (root / "dataset.json").write_text(json.dumps({**info, "seed": recipe["seed"], "recipe": recipe}))
+        return root
+
+    base = {"seed": 4, "cars": ["procedural:train"], "envmaps": ["procedural"], "camera": {"radius_max": 8}}
+    train = with_recipe(tiny_intrinsics(tmp_path / "train", n=2), kind="intrinsics", samples=1,
+                        background="environment", **base)
+    evaluation = with_recipe(tiny_intrinsics(tmp_path / "eval", n=2, kind="pbr"), kind="pbr", samples=8, **base)
+    with pytest.raises(ProtocolError, match="shows the poses of the training intrinsics"):
+        check_sets(describe("train", train), None, describe("eval", evaluation), None)

@@ -355,14 +355,16 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     bs = cfg.data.batch_size
     s_m = StepSampler(len(intr), bs, cfg.run.seed, 1 if paired else 0, start, dd.rank, dd.world, cfg.data.hflip)
     s_i = StepSampler(len(reals), bs, cfg.run.seed, 1, start, dd.rank, dd.world, cfg.data.hflip)
-    # the main process builds the caches; the others open them once they are whole
-    for turn in ((True, False) if dd.world > 1 else (dd.main,)):
-        if turn == dd.main:
-            (ds_m, w_m), (ds_i, w_i) = (_maybe_cached(intr, run, "real_intrinsics" if paired else "intrinsics", 9, cfg,
-                                                      progress and dd.main),
-                                        _maybe_cached(reals, run, "real", 3, cfg, progress and dd.main))
-        if dd.world > 1 and turn:
-            dist.barrier()
+    def sources():
+        return (_maybe_cached(intr, run, "real_intrinsics" if paired else "intrinsics", 9, cfg, progress and dd.main),
+                _maybe_cached(reals, run, "real", 3, cfg, progress and dd.main))
+
+    if dd.main:  # the main process builds the caches; the others open them once they are whole
+        (ds_m, w_m), (ds_i, w_i) = sources()
+    if dd.world > 1:
+        dist.barrier()
+        if not dd.main:
+            (ds_m, w_m), (ds_i, w_i) = sources()
     it_m = infinite_loader(ds_m, s_m, w_m)
     it_i = infinite_loader(ds_i, s_i, w_i)
     k = min(cfg.run.grid_samples, len(intr), len(reals))
