@@ -18,10 +18,11 @@ import random
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from PIL import Image
 
-from blender_gen.dataset import atomic_write_bytes
-from train.data import image_files
+from blender_gen.dataset import DatasetError, atomic_write_bytes
+from train.data import image_files, read_photo
 
 SCHEMA = "iae-ab-study/1"
 KINDS = {"AB": ("A", "B"), "AR": ("A", "real"), "BR": ("B", "real")}
@@ -44,9 +45,9 @@ def list_images(folder: Path, option: str) -> list[Path]:
 def _data_uri(path: Path, height: int | None) -> str:
     """Every image re-encoded the same way (JPEG, quality 92) so the file format is never a tell."""
     try:
-        img = Image.open(path).convert("RGB")
-    except OSError as exc:
-        raise StudyError(f"{path}: cannot read image ({exc})") from None
+        img = Image.fromarray((read_photo(path) * 255.0 + 0.5).astype(np.uint8))
+    except DatasetError as exc:
+        raise StudyError(str(exc)) from None
     if height and img.height != height:
         img = img.resize((max(1, round(img.width * height / img.height)), height), Image.LANCZOS)
     buf = io.BytesIO()

@@ -280,3 +280,54 @@ def test_the_background_option_does_not_hide_a_shared_sample_recipe(tmp_path):
     evaluation = with_recipe(tiny_intrinsics(tmp_path / "eval", n=2, kind="pbr"), kind="pbr", samples=8, **base)
     with pytest.raises(ProtocolError, match="shows the poses of the training intrinsics"):
         check_sets(describe("train", train), None, describe("eval", evaluation), None)
+
+
+@pytest.mark.parametrize("mode", ["1", "L", "I;16", "I", "P", "RGB", "RGBA", "CMYK", "RGB16"])
+def test_photos_of_every_pillow_mode_load_at_their_own_scale(tmp_path, mode):
+    """A mid-grey photo (white for 1-bit) loads as mid-grey whatever its mode; 16-bit grey PNGs
+    used to load as nearly all white through convert("RGB")."""
+    from PIL import Image
+
+    from train.data import read_photo
+
+    h, w = 6, 8
+    if mode == "I;16":
+        img, want = Image.fromarray(np.full((h, w), 32896, np.uint16)), 0.502
+    elif mode == "I":
+        img, want = Image.fromarray(np.full((h, w), 32896, np.int32)), 0.502
+    elif mode == "RGB16":  # 16-bit RGB PNG: Pillow reads it as 8-bit RGB
+        import zlib
+        import struct
+
+        raw = b"".join(b"\x00" + struct.pack(">HHH", 32896, 32896, 32896) * w for _ in range(h))
+        chunk = lambda t, d: struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))  # noqa: E731
+        png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 2, 0, 0, 0)) \
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+        (tmp_path / "x.png").write_bytes(png)
+        img, want = None, 0.502
+    elif mode == "1":
+        img, want = Image.new("1", (w, h), 1), 1.0
+    elif mode == "CMYK":
+        img, want = Image.new("RGB", (w, h), (128, 128, 128)).convert("CMYK"), 0.502
+    elif mode == "P":
+        img, want = Image.new("RGB", (w, h), (128, 128, 128)).convert("P", palette=Image.ADAPTIVE), 0.502
+    else:
+        img, want = Image.new("RGB", (w, h), (128, 128, 128)).convert(mode), 0.502
+    path = tmp_path / {"CMYK": "x.jpg", "I": "x.tif"}.get(mode, "x.png")  # PNG cannot store 32-bit integers
+    if img is not None:
+        img.save(path, quality=100) if mode == "CMYK" else img.save(path)
+    got = read_photo(path)
+    assert got.shape == (h, w, 3) and got.dtype == np.float32
+    assert np.allclose(got, want, atol=0.02), (mode, float(got.mean()))
+
+
+def test_an_oversized_photo_is_a_one_line_error(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from blender_gen.dataset import DatasetError
+    from train.data import read_photo
+
+    Image.new("L", (64, 64)).save(tmp_path / "big.png")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # 64x64 is then over twice the limit: a bomb
+    with pytest.raises(DatasetError, match="big.png: cannot read image"):
+        read_photo(tmp_path / "big.png")

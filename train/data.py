@@ -78,6 +78,30 @@ class IntrinsicsData(Dataset):
         return flip_stack(m) if flip else m
 
 
+def photo_to_srgb01(img: Image.Image) -> np.ndarray:
+    """Any image mode Pillow reads -> HxWx3 float32 sRGB values in [0, 1].
+
+    `convert("RGB")` would clip 16-bit and 32-bit grey modes (a 16-bit grey PNG opens as I;16 or
+    I with values up to 65535) to nearly all white; those are scaled by their own range instead.
+    Alpha is dropped; palette, CMYK, YCbCr and 1-bit images convert as Pillow defines."""
+    if img.mode.startswith("I;16") or img.mode == "I":
+        grey = np.asarray(img, dtype=np.float64) / 65535.0
+    elif img.mode == "F":
+        grey = np.asarray(img, dtype=np.float64)
+    else:
+        return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+    return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1).astype(np.float32)
+
+
+def read_photo(path: Path) -> np.ndarray:
+    """A photo as HxWx3 sRGB in [0, 1]; a one-line DatasetError names an unreadable or oversized file."""
+    try:
+        with Image.open(path) as img:
+            return photo_to_srgb01(img)
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise DatasetError(f"{path}: cannot read image ({exc})") from None
+
+
 class RealImages(Dataset):
     """I_r from a PBR dataset (its `rgb` layer) or a folder of JPG/PNG photos -> (3, H, W).
 
@@ -107,11 +131,7 @@ class RealImages(Dataset):
         return self.ds.rows[index]["file"] if self.ds is not None else str(self.files[index])
 
     def load_photo(self, path: Path) -> np.ndarray:
-        try:
-            img = Image.open(path).convert("RGB")
-        except OSError as exc:
-            raise DatasetError(f"{path}: cannot read image ({exc})") from exc
-        return np.asarray(img, dtype=np.float32) / 127.5 - 1.0  # photos are already sRGB-encoded
+        return read_photo(path) * 2.0 - 1.0  # photos are already sRGB-encoded
 
     def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
         index, flip = item
