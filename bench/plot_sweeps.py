@@ -8,7 +8,10 @@ from __future__ import annotations
 import argparse
 import json
 from collections import defaultdict
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 TITLES = {"s0_first": "S0, first sweep (8.3 min, 18 runs at once)", "s0": "S0: analytic shading (exact)", "s1": "S1: PBR, black background",
           "protocol": "protocol: PBR with background", "protocol_env": "protocol, environment in M_s's reflection"}
@@ -77,11 +80,43 @@ def figure(root: Path, out: Path) -> None:
     plt.close(fig)
 
 
+def runs_figure(runs: list[Path], out: Path) -> None:
+    """Probe curves (normals, albedo, reflection beside the constant predictor's) of run folders."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from train.run_folder import RunFolder
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    for k, run in enumerate(runs):
+        rows = [r for r in RunFolder(run).stats() if "probe/normal_deg" in r]
+        seed = RunFolder(run).config().run.seed
+        steps = [r["step"] for r in rows]
+        for ax, key in zip(axes, ("normal_deg", "albedo_l1", "reflection_l1")):
+            ax.plot(steps, [r[f"probe/{key}"] for r in rows], color=f"C{k}", label=f"full model, seed {seed}")
+            if k == 0:
+                ax.plot(steps, [r[f"probe/const_{key}"] for r in rows], "--", color="gray", label="constant predictor")
+    for ax, title in zip(axes, ("normals: mean angle (deg)", "albedo L1 (0-255)", "reflection L1 (0-255)")):
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("step (batch 4, 64x128)")
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("root", type=Path)
+    ap.add_argument("root", type=Path, nargs="?", default=None)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--runs", type=Path, nargs="+", default=None, help="run folders: their probe curves instead")
     a = ap.parse_args()
+    if a.runs:
+        runs_figure(a.runs, a.out)
+        print(f"wrote {a.out}")
+        return
     print(table(a.root))
     if a.out:
         figure(a.root, a.out)
