@@ -27,14 +27,21 @@ def cycle_loss(recon: torch.Tensor, target: torch.Tensor, beta: float) -> torch.
     return F.smooth_l1_loss(recon.float(), target.float(), beta=beta)
 
 
-def normal_length_loss(normals: torch.Tensor, threshold: float) -> torch.Tensor:
-    """Mean |1 - ||n||_2| over pixels whose predicted normal is longer than `threshold`.
+def object_mask(stack: torch.Tensor) -> torch.Tensor:
+    """(N, 1, H, W) 1.0 where a network-space intrinsics stack has an object (its normal is set;
+    the background's is zero)."""
+    return (stack[:, 0:3].float().norm(dim=1, keepdim=True) > 0.5).float()
 
-    The synthetic maps have zero normals on the background; the threshold keeps the loss
-    from pushing background pixels to unit length.
+
+def normal_length_loss(normals: torch.Tensor, threshold: float, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |1 - ||n||_2| over the pixels of `mask` (N, 1, H, W) or, without one, over pixels whose
+    predicted normal is longer than `threshold`.
+
+    The synthetic maps have zero normals on the background; the threshold (or the mask of the
+    known object) keeps the loss from pushing background pixels to unit length.
     """
     length = normals.float().norm(dim=1)
-    weight = (length > threshold).float()
+    weight = (length > threshold).float() if mask is None else mask[:, 0].float()
     return ((1.0 - length).abs() * weight).sum() / weight.sum().clamp_min(1.0)
 
 

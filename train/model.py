@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss
+from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
 from .networks import Decomposer, MultiscaleDiscriminator, init_weights, make_renderer_net
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
@@ -162,9 +162,7 @@ class IntrinsicAutoencoder(nn.Module):
         if lc.normal_length_on == "car":
             if "rec_M" not in out:
                 return None
-            on = (out["M_s"][:, :3].norm(dim=1) > 0.5).float()
-            length = out["rec_M"][:, :3].float().norm(dim=1)
-            return ((1.0 - length).abs() * on).sum() / on.sum().clamp_min(1.0)
+            return normal_length_loss(out["rec_M"][:, :3], lc.normal_threshold, mask=object_mask(out["M_s"]))
         terms = [normal_length_loss(out[k][:, :3], lc.normal_threshold) for k in ("fake_M", "rec_M") if k in out]
         return sum(terms) if terms else None
 

@@ -19,6 +19,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .losses import object_mask
+from .sanity import srgb_decode, srgb_encode
+
 PROBE_PREFIX = "probe/"
 
 
@@ -68,9 +71,7 @@ def load_probe(root: Path, height: int, width: int, limit: int | None = 64) -> P
 def training_means(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean albedo and reflection over object pixels (|normal| > 0.5) of network-space stacks,
     averaged in linear light and returned in network space: the constant predictor's values."""
-    on = (maps[:, 0:3].norm(dim=1, keepdim=True) > 0.5).float()
-    from .sanity import srgb_decode, srgb_encode
-
+    on = object_mask(maps)
     out = []
     for sl in (slice(3, 6), slice(6, 9)):
         mean = (srgb_decode((maps[:, sl] + 1) * 0.5) * on).sum(dim=(0, 2, 3)) / on.sum().clamp_min(1)
