@@ -15,7 +15,7 @@ from .dataset import MAX_INDEX
 from .envmap import PROCEDURAL_SETS
 from .generate import generate, merge
 from .recipe import Recipe
-from .rules import MODEL_SUFFIXES
+from .cars.rules import MODEL_SUFFIXES
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
@@ -92,7 +92,9 @@ def _common_options(fn):
         click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels."),
         click.option("--cars", "cars", multiple=True,
                      help="Catalogue selectors (procedural, procedural:train, procedural:heldout, a category, "
-                          "model names; comma-separated or repeated) or model files with --car-rules."),
+                          "model names; comma-separated or repeated), procedural:random[:CATEGORY][@SEED] (a new "
+                          "seeded car for every block of views, never like a held-out model) or model files "
+                          "with --car-rules."),
         click.option("--car-rules", type=click.Path(dir_okay=False), default=None,
                      help="TOML rules mapping a model file's objects/materials/palette regions to parts."),
         click.option("--envmap", "envmaps", multiple=True,
@@ -142,7 +144,7 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
         _fail(f"--car-rules {rules}: no such file")
     cars = check_cars(o["cars"] or (default_cars,), rules)
     if rules is not None:
-        from .rules import RulesError, load_rules
+        from .cars.rules import RulesError, load_rules
 
         try:
             load_rules(rules)
@@ -254,15 +256,25 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
 @click.option("--cars", "cars", multiple=True, help="Selectors or model files (default: the whole catalogue).")
 @click.option("--car-rules", type=click.Path(dir_okay=False), default=None)
 @click.option("--columns", default=4, show_default=True, type=click.IntRange(1, 64))
-def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: int) -> None:
-    """A contact sheet (one PNG) of car models in a fixed view, to judge them at a glance."""
+@click.option("--count", default=24, show_default=True, type=click.IntRange(1, 1000),
+              help="Cars drawn from a procedural:random selector.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of procedural:random cars.")
+@click.option("--quiet", is_flag=True)
+def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: int, count: int, seed: int,
+             quiet: bool) -> None:
+    """A contact sheet (one PNG) of car models in a fixed view, to judge them at a glance.
+
+    `--cars procedural:random --count 24 --seed 5` shows the first 24 random cars of seed 5:
+    the cars a dataset with `--cars procedural:random --seed 5` draws, in its order.
+    """
     from .contact_sheet import contact_sheet
 
     if car_rules is not None and not Path(car_rules).is_file():
         _fail(f"--car-rules {car_rules}: no such file")
     chosen = check_cars(cars or ("procedural",), car_rules)
     with one_line_errors():
-        path = contact_sheet(out, chosen, str(Path(car_rules).resolve()) if car_rules else None, columns=columns)
+        path = contact_sheet(out, chosen, str(Path(car_rules).resolve()) if car_rules else None, columns=columns,
+                             count=count, seed=seed, progress=not quiet)
     click.echo(str(path))
 
 

@@ -27,13 +27,22 @@ def shaded(layers: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules: str | None = None,
-                  size: tuple[int, int] = (384, 192), columns: int = 4, paint: str = "royal_blue") -> Path:
+                  size: tuple[int, int] = (384, 192), columns: int = 4, paint: str = "royal_blue",
+                  count: int = 24, seed: int = 0, progress: bool = True) -> Path:
+    """One tile per model; a `procedural:random` selector contributes cars 0..count-1 of `seed`."""
+    from tqdm import tqdm
+
+    from .cars import RandomCars
+
     w, h = size
-    r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, cars=cars, car_rules=car_rules,
+    r = SampleRenderer(Recipe(kind="intrinsics", seed=seed, width=w, height=h, cars=cars, car_rules=car_rules,
                               sky_variants=1), threads=0)
+    specs = []
+    for spec in r.car_specs:
+        specs += [spec.car(seed, k) for k in range(count)] if isinstance(spec, RandomCars) else [spec]
     tiles = []
     try:
-        for spec in r.car_specs:
+        for spec in tqdm(specs, desc="cars", unit="car", disable=not progress):
             car = r.car(spec)
             r.show(car)
             lo, hi = car.points.min(axis=0), car.points.max(axis=0)
@@ -44,7 +53,8 @@ def contact_sheet(out: Path, cars: tuple[str, ...] = ("procedural",), car_rules:
             pose = CameraPose(tuple(loc), tuple(map(tuple, look_at(loc, centre))), tuple(centre), 35.0, 36.0)
             r.place({"car": car, "paint": r.table.paints[paint], "rotation": 0.0, "pose": pose})
             img = Image.fromarray(shaded(r.render_current()))
-            ImageDraw.Draw(img).text((6, 4), f"{spec.name} ({spec.category}, {spec.split})", fill=(20, 20, 20))
+            style = f", {spec.body_style}" if hasattr(spec, "body_style") else ""
+            ImageDraw.Draw(img).text((6, 4), f"{spec.name} ({spec.category}{style}, {spec.split})", fill=(20, 20, 20))
             tiles.append(img)
     finally:
         r.close()

@@ -46,6 +46,10 @@ class Recipe:
         d["envmaps"] = [_file_identity(e) if e not in PROCEDURAL_SETS else e for e in self.envmaps]
         d["cars"] = [_file_identity(c) if Path(c).suffix else c for c in self.cars]
         d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
+        if any(not Path(c).suffix for c in self.cars):  # procedural cars: which catalogue and sampler
+            from .cars import catalogue_digest
+
+            d["catalogue"] = catalogue_digest()
         if self.background == "black":  # sets made before the option existed keep their identity
             del d["background"]
         return d

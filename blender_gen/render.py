@@ -17,13 +17,13 @@ import numpy as np
 
 from . import scene as S
 from .camera import orbit_focal, orbit_pose, sample_camera
-from .cars import load_catalogue, load_part_materials, select_cars
+from .cars import RandomCars, load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, procedural_sky
 from .materials import load_materials
 from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
-from .rules import MODEL_SUFFIXES, ImportedSpec, imported_specs, load_rules
+from .cars.rules import MODEL_SUFFIXES, ImportedSpec, imported_specs, load_rules
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
 
@@ -134,15 +134,26 @@ class SampleRenderer:
 
     def forget_cars(self) -> None:
         """Delete every built car, so the next sample builds its model again (for benchmarks)."""
-        for car in list(self._cars.values()):
-            meshes = {o.data for o in car.objects.values()}
-            for o in list(car.collection.objects):
-                bpy.data.objects.remove(o, do_unlink=True)
-            for m in meshes:
-                bpy.data.meshes.remove(m)
-            bpy.data.collections.remove(car.collection)
-        self._cars.clear()
-        self._visible = None  # the shown car is gone
+        for name in list(self._cars):
+            self._forget(name)
+
+    def _forget(self, name: str) -> None:
+        car = self._cars.pop(name)
+        meshes = {o.data for o in car.objects.values()}
+        for o in list(car.collection.objects):
+            bpy.data.objects.remove(o, do_unlink=True)
+        for m in meshes:
+            bpy.data.meshes.remove(m)
+        bpy.data.collections.remove(car.collection)
+        if self._visible == name:
+            self._visible = None  # the shown car is gone
+
+    # Random cars are built per block of views and rarely seen again: keep only the latest few.
+    KEEP_RANDOM = 4
+
+    def _resolve_random(self, spec, k: int):
+        """Car k of a `procedural:random` pool (a catalogue or imported spec passes through)."""
+        return spec.car(self.recipe.seed, k) if isinstance(spec, RandomCars) else spec
 
     def env_pixels(self, name: str) -> np.ndarray:
         """The environment map exactly as the shader sees it (for reference checks)."""
@@ -153,17 +164,22 @@ class SampleRenderer:
         if car is None:
             from .cars import build_car
 
+            if spec.split == "random":
+                built = [n for n, c in self._cars.items() if c.split == "random"]
+                for name in built[: max(0, len(built) - self.KEEP_RANDOM + 1)]:
+                    self._forget(name)
             part_mat = self._part_materials
             if spec.tinted_rear:
                 part_mat = {**part_mat, "window_side": self._tinted}
             if isinstance(spec, ImportedSpec):
-                from .importer import import_model
+                from .cars.importer import import_model
 
                 parts, source = import_model(spec.path, self._rules).parts, f"import:{Path(spec.path).name}"
             else:
                 parts, source = build_car(spec), "procedural"
             car = S.add_car(spec.name, spec.category, parts, part_mat, self.materials, self.shader, self.scene)
             car.source = source
+            car.split = spec.split
             self._cars[spec.name] = car
         return car
 
@@ -176,6 +192,7 @@ class SampleRenderer:
         rng = np.random.default_rng(seed)
         block = np.random.default_rng(block_seed(self.recipe.seed, index, self.recipe.views_per_car))
         spec = self.car_specs[int(block.integers(len(self.car_specs)))]
+        spec = self._resolve_random(spec, index // self.recipe.views_per_car)  # a new random car per block
         paint = self.paints[int(rng.integers(len(self.paints)))]
         env = self.env_names[int(block.integers(len(self.env_names)))]
         rotation = float(rng.uniform(0.0, 360.0))
@@ -189,7 +206,7 @@ class SampleRenderer:
         orbit = self.recipe.orbit
         seed = sample_seed(self.recipe.seed, 0)
         rng = np.random.default_rng(seed)
-        spec = self.car_specs[0]
+        spec = self._resolve_random(self.car_specs[0], 0)
         drawn_paint = self.paints[int(rng.integers(len(self.paints)))]
         paint = self.table.paints[orbit.paint] if orbit.paint else drawn_paint
         env = self.env_names[int(rng.integers(len(self.env_names)))]

@@ -217,6 +217,7 @@ class CarInstance:
     points: np.ndarray  # (N, 3) world-space vertices, subsampled
     root: bpy.types.Object | None = None  # parent of all parts
     source: str = "procedural"
+    split: str = "train"  # "random" cars are dropped again after a few blocks
 
     def set_visible(self, visible: bool) -> None:
         self.collection.hide_render = not visible

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from blender_gen.rules import RulesError, load_rules
+from blender_gen.cars.rules import RulesError, load_rules
 
 from .conftest import ROOT, SHARED_ASSETS, assets_mark, run_gen
 
@@ -91,8 +91,8 @@ def test_obj_with_material_rules(tmp_path):
         '[[rule]]\nmatch = "material"\npattern = "glass*"\npart = "windows"\n')
     out = _in_blender(f"""
 import json, bpy
-from blender_gen.rules import load_rules
-from blender_gen.importer import import_model
+from blender_gen.cars.rules import load_rules
+from blender_gen.cars.importer import import_model
 m = import_model({str(tmp_path / 'car.obj')!r}, load_rules({str(tmp_path / 'rules.toml')!r}))
 print(json.dumps({{'counts': m.face_counts, 'unmatched': m.unmatched}}))
 """)
@@ -119,8 +119,8 @@ print(json.dumps({{'ok': True}}))
     out = _in_blender(f"""
 import json, bpy
 bpy.context.preferences.filepaths.use_scripts_auto_execute = True  # even a permissive user setting
-from blender_gen.rules import load_rules
-from blender_gen.importer import import_model
+from blender_gen.cars.rules import load_rules
+from blender_gen.cars.importer import import_model
 m = import_model({str(blend)!r}, load_rules({str(tmp_path / 'rules.toml')!r}))
 print(json.dumps({{'parts': sorted(m.parts)}}))
 """)

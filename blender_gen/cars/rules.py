@@ -35,7 +35,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .cars import CATEGORIES, PARTS
+from .spec import CATEGORIES, PARTS
 
 MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")

@@ -16,9 +16,9 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from .geometry import Mesh
-from .quiet import quiet_stdout
-from .cli_errors import first_line
+from ..geometry import Mesh
+from ..quiet import quiet_stdout
+from ..cli_errors import first_line
 from .rules import MODEL_SUFFIXES, SPLIT_PARTS, Rules, RulesError, face_part
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 

@@ -1,0 +1,174 @@
+"""Where cars come from (issue 18): body styles, seeded random cars, held-out separation,
+silhouette maths, the catalogue's distinctness, and random cars in a rendered dataset."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from blender_gen.cars import CATEGORIES, STYLES, CarSpec, RandomCars, build_car, load_catalogue, select_cars
+from blender_gen.cars import sampler
+from blender_gen.cars.sampler import draw_spec, load_ranges, random_spec
+from blender_gen.cars.silhouette import VIEWS, diversity, iou, iou_matrix, pair_iou, silhouettes
+from blender_gen.cars.spec import ARCHES, GRILLES, HEADLIGHTS, TAIL_LIGHTS, spec_problems
+from blender_gen.geometry import Mesh
+
+from .conftest import run_gen
+
+NEEDED = ("body", "windshield", "window_side", "window_rear", "tyres", "rims", "brake_discs", "headlights",
+          "indicators", "tail_lights", "grille", "bumper_front", "bumper_rear", "mirrors", "mirror_glass",
+          "licence_plates", "door_handles", "underbody", "exhaust", "interior")
+
+
+def _style_samples(per_style: int = 3) -> dict[str, list[CarSpec]]:
+    out: dict[str, list[CarSpec]] = {}
+    rng = np.random.default_rng(11)
+    for cat in CATEGORIES:
+        while any(len(out.get(s, [])) < per_style for s in STYLES[cat]):
+            spec = draw_spec(rng, cat, "t")
+            if spec is not None:
+                out.setdefault(spec.body_style, []).append(spec)
+    return out
+
+
+def test_every_body_style_has_every_part_grounded_and_in_its_real_world_range():
+    ranges = load_ranges()
+    samples = _style_samples()
+    assert set(samples) == {s for styles in STYLES.values() for s in styles}
+    for style, specs in samples.items():
+        for spec in specs:
+            parts = build_car(spec)
+            missing = [p for p in NEEDED if p not in parts]
+            assert not missing, f"{style}: {spec} lacks {missing}"
+            pts = np.concatenate([m.verts for m in parts.values()])
+            assert abs(pts[:, 2].min()) < 0.01, f"{style}: tyres touch the ground"
+            lo, hi = ranges[spec.category]["length"]
+            assert lo - 0.03 <= np.ptp(pts[:, 0]) <= hi + 0.03, (style, np.ptp(pts[:, 0]))
+            glass = sum(len(parts[p].faces) for p in ("windshield", "window_side", "window_rear"))
+            assert glass > 50, f"{style}: the greenhouse has windows"
+
+
+def test_body_styles_differ_where_they_should():
+    """Notchbacks have a trunk deck, vans a short hood, SUVs ground clearance."""
+    s = _style_samples(4)
+    deck = {k: np.mean([c.length - c.cabin_end_s for c in v]) for k, v in s.items()}
+    hood = {k: np.mean([c.windshield_s for c in v]) for k, v in s.items()}
+    assert deck["notchback"] > 0.6 > max(deck["hatchback"], deck["wagon"], deck["suv"], deck["van"])
+    assert hood["van"] < min(hood["notchback"], hood["suv"], hood["wagon"])
+    assert min(c.clearance for c in s["suv"]) > max(c.clearance for c in s["notchback"])
+
+
+def test_random_cars_are_a_pure_function_of_seed_and_index():
+    sampler.random_spec.cache_clear()
+    a = [random_spec(5, k) for k in range(6)]
+    sampler.random_spec.cache_clear()
+    b = [random_spec(5, k) for k in range(6)]
+    assert a == b
+    assert len({c.name for c in a}) == 6 and len({(c.length, c.height) for c in a}) == 6
+    assert random_spec(6, 0) != random_spec(5, 0)
+    for x, y in zip(build_car(a[0]).values(), build_car(b[0]).values()):
+        assert np.array_equal(x.verts, y.verts) and np.array_equal(x.faces, y.faces)
+    suv = [random_spec(5, k, ("suv",)) for k in range(3)]
+    assert {c.category for c in suv} == {"suv"} and suv[0].name != a[0].name
+
+
+def test_random_cars_never_reproduce_a_heldout_model(monkeypatch):
+    cat = load_catalogue()
+    heldout = [c for c in cat.values() if c.split == "heldout"]
+    assert {c.category for c in heldout} == set(CATEGORIES)
+    # A draw identical to a held-out model is rejected and redrawn from the same stream.
+    draws = iter([heldout[0], heldout[0], None])
+    real_draw = sampler.draw_spec
+    monkeypatch.setattr(sampler, "draw_spec", lambda rng, c, n, split="random": next(draws, None) or real_draw(rng, c, n))
+    sampler.random_spec.cache_clear()
+    spec = random_spec(123, 0, (heldout[0].category,))
+    assert sampler.resembles_heldout(heldout[0])[0] == heldout[0].name
+    assert spec.split == "random" and sampler.resembles_heldout(spec) is None
+    monkeypatch.undo()
+    sampler.random_spec.cache_clear()
+    names = set(cat)
+    for k in range(8):
+        spec = random_spec(1, k)
+        assert spec.name not in names and spec.split == "random"
+        assert sampler.resembles_heldout(spec) is None
+
+
+def test_named_models_are_distinct_and_the_catalogue_checks_its_specs(tmp_path):
+    cat = load_catalogue()
+    specs = list(cat.values())
+    sils = [silhouettes(build_car(s), pixel=0.05) for s in specs]
+    m = iou_matrix(sils)
+    iu = np.triu_indices(len(specs), 1)
+    worst = int(np.argmax(m[iu]))
+    assert m[iu].max() <= 0.93, (specs[iu[0][worst]].name, specs[iu[1][worst]].name, m[iu].max())
+    bad = tmp_path / "cars.toml"
+    bad.write_text('[part_materials]\nbody = "paint"\n[[car]]\nname = "x"\ncategory = "sedan"\nsplit = "train"\n'
+                   'length = 4.5\nwidth = 1.8\nheight = 1.45\nwheelbase = 2.7\nfront_overhang = 0.9\n'
+                   'style = "wagon"\ngrille = "star"\n')
+    with pytest.raises(ValueError, match=r"cars\.toml: car 'x': style 'wagon' is not one of .*grille 'star'"):
+        load_catalogue(bad)
+
+
+def test_spec_problems_name_the_fields():
+    spec = random_spec(2, 0)
+    assert spec_problems(spec) == []
+    assert "headlight" in " ".join(spec_problems(CarSpec(**{**spec.__dict__, "headlight": "laser"})))
+    assert "cabin_end_s" in " ".join(spec_problems(CarSpec(**{**spec.__dict__, "cabin_end_s": spec.length + 1})))
+    assert "must be a positive number" in " ".join(spec_problems(CarSpec(**{**spec.__dict__, "height": float("nan")})))
+    assert set(GRILLES) and set(HEADLIGHTS) and set(TAIL_LIGHTS) and set(ARCHES)
+
+
+def test_random_selectors():
+    cat = load_catalogue()
+    (pool,) = select_cars(cat, "procedural:random")
+    assert isinstance(pool, RandomCars) and pool.car(3, 1) == random_spec(3, 1)
+    (vans,) = select_cars(cat, "procedural:random:van")
+    assert vans.car(3, 0).category == "van"
+    with pytest.raises(ValueError, match="unknown category 'boat'"):
+        select_cars(cat, "procedural:random:boat")
+    with pytest.raises(ValueError, match="procedural:random"):
+        select_cars(cat, "procedural:nope")
+    (fixed,) = select_cars(cat, "procedural:random:suv@7")
+    assert fixed.car(1, 2) == fixed.car(99, 2) == random_spec(7, 2, ("suv",))
+    with pytest.raises(ValueError, match="must be an integer"):
+        select_cars(cat, "procedural:random@x")
+    mixed = select_cars(cat, "van_a,procedural:random")
+    assert mixed[0].name == "van_a" and isinstance(mixed[1], RandomCars)
+
+
+def test_silhouette_iou_maths():
+    box = Mesh(np.array([[-1, -0.5, 0], [1, -0.5, 0], [1, 0.5, 0], [-1, 0.5, 0],
+                         [-1, -0.5, 1], [1, -0.5, 1], [1, 0.5, 1], [-1, 0.5, 1]], float),
+               np.array([[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]))
+    half = Mesh(box.verts * np.array([0.5, 1, 1]), box.faces)
+    a, b = silhouettes(box, pixel=0.05), silhouettes(half, pixel=0.05)
+    assert set(a) == set(VIEWS)
+    assert a["side"].sum() == pytest.approx((2 / 0.05) * (1 / 0.05), rel=0.06)  # metric: 2 m x 1 m
+    assert iou(a["side"], b["side"]) == pytest.approx(0.5, abs=0.03)
+    assert iou(a["end"], b["end"]) == pytest.approx(1.0, abs=0.01)
+    assert pair_iou(a, b) == pytest.approx((0.5 + 1.0 + 0.5) / 3, abs=0.03)
+    m = iou_matrix([a, b, a])
+    d = diversity(["a", "b", "c"], ["x", "y", "x"], m)
+    assert d["within_median"] == pytest.approx(1.0) and d["closest_pair"][:2] == ["a", "c"]
+    assert d["nn_category_accuracy"] == pytest.approx(2 / 3)
+
+
+@pytest.mark.blender
+def test_a_random_car_dataset_renders_a_new_car_per_block_and_resumes_identically(tmp_path):
+    out = tmp_path / "rand"
+    args = ("intrinsics", "--out", str(out), "--count", "6", "--resolution", "64x32", "--seed", "9",
+            "--cars", "procedural:random", "--views-per-car", "2", "--quiet")
+    run_gen(*args)
+    rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    names = [r["car"]["name"] for r in sorted(rows, key=lambda r: r["index"])]
+    assert names[0] == names[1] and names[2] == names[3] and len(set(names)) == 3
+    assert names[0] == random_spec(9, 0).name and names[4] == random_spec(9, 2).name
+    info = json.loads((out / "dataset.json").read_text())
+    assert "catalogue" in info["recipe"], "the recipe identity names the catalogue and sampler it used"
+    before = (out / "samples" / "000003.exr").read_bytes()
+    (out / "samples" / "000003.exr").unlink()
+    lines = (out / "manifest.jsonl").read_text().splitlines()
+    (out / "manifest.jsonl").write_text("\n".join(line for line in lines if json.loads(line)["index"] != 3) + "\n")
+    run_gen(*args)
+    assert (out / "samples" / "000003.exr").read_bytes() == before
