@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 import sys
 from dataclasses import replace
@@ -226,6 +227,10 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
     """
     from .materials import load_materials
 
+    for name, value in (("--radius", radius), ("--height", cam_height), ("--focal", focal), ("--start", start),
+                        ("--env-rotation", env_rotation)):
+        if value is not None and not math.isfinite(value):  # click's ranges let NaN through
+            _fail(f"{name} {value}: expected a finite number")
     paints = load_materials().paints
     if paint is not None and paint not in paints:
         _fail(f"--paint {paint!r}: no such paint; expected one of {', '.join(paints)}")

@@ -166,8 +166,21 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str
         raise DatasetError(f"--out {out}: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")) from None
 
 
+def _unstarted(out: Path) -> None:
+    """Remove what a run that never finished a sample wrote into a folder it found empty, so the
+    folder takes a corrected command (e.g. a turntable refused for its --radius)."""
+    import shutil
+
+    for name in ("dataset.json", "manifest.jsonl"):
+        (out / name).unlink(missing_ok=True)
+    for sub in ("samples", "previews"):
+        if (out / sub).is_dir() and not any(p.is_file() and not p.name.startswith(".") for p in (out / sub).rglob("*")):
+            shutil.rmtree(out / sub, ignore_errors=True)
+
+
 def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_t: tuple[int, int],
                      progress: bool) -> dict:
+    fresh = not (out / "dataset.json").exists()
     writer, done_rows = prepare_output(out, recipe, count, shard_t)
     done = {r["index"] for r in done_rows}
     todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]
@@ -209,7 +222,10 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
     except BaseException:
         bar.close()
         try:  # record what is finished, but never let a second error hide the first
-            finish()
+            if fresh and rendered == 0 and not read_manifest(writer.manifest):
+                _unstarted(out)
+            else:
+                finish()
         except Exception:
             pass
         raise

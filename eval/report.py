@@ -85,10 +85,15 @@ PAPER_TABLE3 = {"Ours, w/o shared discr.": (17.75, 54.00, 55.60), "Ours, w/o dec
                 "CycleGAN": (27.82, 68.18, 73.18), "MUNIT": (29.15, 81.44, 74.75), "Ours (full)": (14.73, 52.74, 51.74)}
 
 
-def _cache_key(run: Path, step: int, data: Path, limit: int | None) -> dict:
-    """What cached predictions depend on: the run, its checkpoint, the data set (and its content), the limit."""
+def _cache_key(run: Path, checkpoint: Path, cfg, data: Path, limit: int | None) -> dict:
+    """What cached predictions depend on: the checkpoint's content (not its path or step: a run
+    retrained in place to the same step is another model), the resolved config, the data set and
+    its content, the limit."""
+    from blender_gen.dataset import sha256_file
+
     info = open_dataset(data).info
-    return {"run": str(Path(run).resolve()), "step": step, "data": str(Path(data).resolve()),
+    return {"run": str(Path(run).resolve()), "checkpoint_sha256": sha256_file(checkpoint),
+            "config": cfg.to_dict(), "data": str(Path(data).resolve()),
             "data_recipe": info.get("recipe"), "data_count": info.get("count"), "limit": limit}
 
 
@@ -96,19 +101,19 @@ def _cached_predictions(run: Path, data: Path, pred_dir: Path, limit: int | None
     """Decompose `data` into `pred_dir` unless predictions for exactly this key are there; returns the step."""
     import shutil
 
-    from train.inference import decompose_images, load_run
+    from train.inference import decompose_images, load_run_checkpoint
 
-    step = load_run(run)[2]  # the checkpoint inference will use (the newest readable one)
-    key = _cache_key(run, step, data, limit)
+    cfg, _, step, checkpoint = load_run_checkpoint(run)  # the newest readable checkpoint, hashed and used
+    key = _cache_key(run, checkpoint, cfg, data, limit)
     info_path = pred_dir / "dataset.json"
     if info_path.exists():
         info = json.loads(info_path.read_text())
         if info.get("complete") and info.get("cache_key") == key:
             return step
     shutil.rmtree(pred_dir, ignore_errors=True)
-    decompose_images(run, data, pred_dir, limit=limit, progress=progress)
+    decompose_images(run, data, pred_dir, limit=limit, progress=progress, checkpoint=checkpoint)
     info = json.loads(info_path.read_text())
-    atomic_write_json(info_path, {**info, "cache_key": key})
+    atomic_write_json(info_path, {**info, "cache_key": {**key, "step": info["step"]}})
     return info["step"]
 
 

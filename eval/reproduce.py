@@ -132,13 +132,36 @@ class Plan:
             return ["torchrun", "--standalone", f"--nproc_per_node={self.gpus}", "-m", "train.cli", *cmd]
         return [sys.executable, "-m", "train.cli", *cmd]
 
+    def check_configs(self) -> None:
+        """Resolve every run's config now (ConfigError names the setting), so a size the networks
+        cannot take fails before any data is generated."""
+        from train.config import load_config
+
+        for name in self.runs:
+            cmd = self.fit_command(name)
+            i = cmd.index("--config")
+            load_config(cmd[i + 1], [cmd[k + 1] for k in range(len(cmd)) if cmd[k] == "--set"])
+
     def estimate_minutes(self) -> float:
         b = self.budget
-        lanes = max(1, self.jobs)
+        # Trainings beyond the runs, or beyond the cores on a CPU, cannot run side by side.
+        cap = 1 if self.gpus else (os.cpu_count() or 1)  # on GPUs one torchrun after another
+        lanes = max(1, min(self.jobs, len(self.runs), cap))
         train = len(self.runs) * b.steps / b.rate / 60 / lanes
         data = (b.n_intrinsics / 30 + b.n_real * 0.7 * b.pbr_samples / 4 + b.n_eval * 1.2 + b.n_fid / 30) / 60
         report = (len(self.runs) * (b.n_eval + 2 * b.n_fid) / 9 + b.n_real / 9) / 60
         return train + data + report + 1
+
+
+def _term_with_parent() -> None:
+    """In the child before exec: ask Linux for SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+    except (OSError, AttributeError):  # not Linux: the run folder's lock still refuses a second writer
+        pass
 
 
 def _run(cmd: list[str], log: Path, threads: int | None = None) -> None:
@@ -149,7 +172,9 @@ def _run(cmd: list[str], log: Path, threads: int | None = None) -> None:
     with open(log, "a") as fh:
         fh.write(f"$ {' '.join(cmd)}\n")
         fh.flush()
-        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+        # The child gets SIGTERM when this process dies, even by SIGKILL: a training saves a
+        # checkpoint and stops instead of living on as a second writer of a rerun's folder.
+        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, preexec_fn=_term_with_parent)
     if proc.returncode:
         tail = log.read_text(errors="replace").strip().splitlines()[-1:]
         raise click.ClickException(f"{cmd[0] if cmd[0] != sys.executable else ' '.join(cmd[1:4])} failed "
@@ -186,90 +211,3 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
           "--out", str(report_dir), "--quiet"], logs / "report.log")
     click.echo(f"done in {(time.time() - t0) / 60:.1f} min: {report_dir / 'report.html'}")
     return report_dir
-
-
-@click.command("reproduce")
-@click.option("--budget", type=click.Choice([*BUDGETS, "sanity", "sanity-smoke"]), default="smoke", show_default=True,
-              help="smoke/cpu/gpu/paper: the paper's comparison; sanity: the S0/S1 settings (README: Making it learn); "
-                   "sanity-smoke: the same at toy size.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Output folder (default: out/reproduce_BUDGET).")
-@click.option("--steps", type=click.IntRange(1), default=None, help="Training steps per run (budget's by default).")
-@click.option("--resolution", default=None, help="Training HEIGHTxWIDTH (the budget's by default).")
-@click.option("--intrinsics", "n_intrinsics", type=click.IntRange(2), default=None, help="Training intrinsics count.")
-@click.option("--real", "n_real", type=click.IntRange(2), default=None, help="Real stand-in image count.")
-@click.option("--eval", "n_eval", type=click.IntRange(1), default=None, help="Table-3 set size.")
-@click.option("--fid", "n_fid", type=click.IntRange(2), default=None, help="FID intrinsics count.")
-@click.option("--runs", default=None, help=f"Comma-separated subset of: {', '.join(n for n, _, _ in RUNS)}.")
-@click.option("--jobs", type=click.IntRange(1), default=None,
-              help="Trainings at once (default: on CPU one per core, each with one thread; on GPUs 1).")
-@click.option("--threads", type=click.IntRange(1), default=None,
-              help="CPU threads per training (default: cores / --jobs); set 1 when several reproduce runs share the cores.")
-@click.option("--seed", type=int, default=100, show_default=True)
-@click.option("--run-seed", type=int, default=None,
-              help="Seed of the trainings (default: --seed): another run seed on the same data.")
-@click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
-def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads, seed,
-                  run_seed, dry_run) -> None:
-    """The paper's comparison end to end: data, every model of Table 1, the report."""
-    from .cli import parse_size
-
-    if budget.startswith("sanity"):
-        return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run)
-    b = BUDGETS[budget]
-    overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
-                                   ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
-    if resolution:
-        h, w = parse_size(resolution)
-        overrides.update(train=(h, w), render=f"{max(w, 128)}x{max(h, 64)}")
-    if steps is not None and b.decay_start is not None:
-        overrides["decay_start"] = int(steps * b.decay_start / b.steps)
-    b = replace(b, **overrides)
-    names = [n for n, _, _ in RUNS]
-    chosen = names if runs is None else [r.strip() for r in runs.split(",") if r.strip()]
-    unknown = [r for r in chosen if r not in names]
-    if unknown or not chosen:
-        raise click.BadParameter(f"{unknown or runs!r}: choose from {', '.join(names)}", param_hint="--runs")
-    import torch
-
-    gpus = torch.cuda.device_count()
-    cores = os.cpu_count() or 1
-    jobs = jobs or (1 if gpus else min(cores, len(chosen)))
-    plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed)
-    click.echo(f"reproduce, budget {budget!r}: {b.note}")
-    click.echo(f"  data      {b.n_intrinsics} intrinsics, {b.n_real} real stand-in, {b.n_eval} Table-3, {b.n_fid} FID "
-               f"intrinsics at {b.render}")
-    click.echo(f"  training  {len(chosen)} runs ({', '.join(chosen)}), {b.steps} steps each at "
-               f"{b.train[0]}x{b.train[1]}, batch {b.batch}")
-    click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
-               f"{jobs} training(s) at a time")
-    click.echo(f"  expected  about {plan.estimate_minutes():.0f} min (from rates measured on a 2-core CPU"
-               f"{'; GPU rates are a guess' if gpus or budget in ('gpu', 'paper') else ''})")
-    click.echo(f"  output    {plan.out}")
-    if dry_run:
-        return
-    if shutil.which("torchrun") is None and gpus > 1:
-        raise click.ClickException("torchrun not found on PATH (it comes with torch)")
-    reproduce(plan)
-
-
-def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | None, threads: int | None, seed: int,
-                dry_run: bool) -> None:
-    from .sanity import SANITY_BUDGETS, SanityPlan, run_sanity
-
-    b = SANITY_BUDGETS[budget]
-    if steps is not None:
-        b = replace(b, steps=steps)
-    cores = os.cpu_count() or 1
-    jobs = jobs or cores
-    plan = SanityPlan(b, budget, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs))
-    n_runs = len(plan.runs())
-    click.echo(f"reproduce, budget {budget!r}: {b.note}")
-    click.echo(f"  data      {b.n_intrinsics} intrinsics (S0: half M_s, half shaded as real), {b.n_real} PBR of the "
-               f"training cars (S1 real, masked), {b.n_probe} Table-3 probe images at {b.render}")
-    click.echo(f"  training  S0 and S1: the full model on seeds {', '.join(map(str, b.seeds))} and the oracle; "
-               f"{n_runs} runs x {b.steps} steps at {b.train[0]}x{b.train[1]}, {jobs} at a time")
-    click.echo(f"  output    {plan.out}")
-    if not dry_run:
-        run_sanity(plan)

@@ -90,3 +90,47 @@ def test_export_command_checks_the_file_and_errors_name_the_option(runs, tmp_pat
     assert bad.returncode == 1 and "export it again" in bad.stderr and "Traceback" not in bad.stderr
     meta = json.loads(json.dumps(read_metadata(out)))
     assert meta["checkpoint"] == "step_00000003.safetensors" and len(meta["checkpoint_sha256"]) == 64
+
+
+def test_export_never_replaces_a_file_unasked_nor_writes_inside_a_run(runs, tmp_path):
+    """Issue 19.4: an existing --out needs --force; a run folder is never written (its newest
+    checkpoint once became a TorchScript zip); --resolution is bounded before anything is allocated."""
+    newest = sorted((runs[0] / "checkpoints").glob("step_*.safetensors"))[-1]
+    before = newest.read_bytes()
+    bad = _run("export", "--run", str(runs[0]), "--net", "R", "--format", "torchscript", "--out", str(newest),
+               "--force", check=False)
+    assert bad.returncode == 1 and "inside the run folder" in bad.stderr and "Traceback" not in bad.stderr
+    assert newest.read_bytes() == before
+    out = tmp_path / "R.onnx"
+    out.write_bytes(b"mine")
+    bad = _run("export", "--run", str(runs[0]), "--net", "R", "--out", str(out), "--no-check", check=False)
+    assert bad.returncode == 1 and "exists; choose a new file or pass --force" in bad.stderr
+    assert out.read_bytes() == b"mine"
+    _run("export", "--run", str(runs[0]), "--net", "R", "--out", str(out), "--no-check", "--force")
+    assert out.read_bytes() != b"mine"
+    huge = _run("export", "--run", str(runs[0]), "--net", "R", "--out", str(tmp_path / "h.onnx"),
+                "--resolution", "100000x100000", check=False)
+    assert huge.returncode == 1 and "at most" in huge.stderr and "Traceback" not in huge.stderr
+
+
+def test_a_video_is_not_written_over_an_existing_file_or_into_a_run(runs, tmp_path):
+    intr = tiny_intrinsics(tmp_path / "intr", n=2)
+    video = tmp_path / "r.gif"
+    video.write_bytes(b"keep")
+    bad = _run("render", "--run", str(runs[0]), "--intrinsics", str(intr), "--out", str(tmp_path / "f1"),
+               "--video", str(video), "--quiet", check=False)
+    assert bad.returncode == 1 and "--video" in bad.stderr and "pass --force" in bad.stderr
+    assert video.read_bytes() == b"keep" and not (tmp_path / "f1").exists()
+    inside = _run("render", "--run", str(runs[0]), "--intrinsics", str(intr), "--out", str(tmp_path / "f2"),
+                  "--video", str(runs[0] / "r.gif"), "--force", "--quiet", check=False)
+    assert inside.returncode == 1 and "inside the run folder" in inside.stderr
+    _run("render", "--run", str(runs[0]), "--intrinsics", str(intr), "--out", str(tmp_path / "f3"),
+         "--video", str(video), "--force", "--quiet")
+    assert video.read_bytes()[:3] == b"GIF"
+
+
+def test_a_nan_frame_rate_is_refused_before_rendering(runs, tmp_path):
+    intr = tiny_intrinsics(tmp_path / "intr", n=2)
+    bad = _run("render", "--run", str(runs[0]), "--intrinsics", str(intr), "--out", str(tmp_path / "f"),
+               "--video", str(tmp_path / "v.gif"), "--fps", "nan", "--quiet", check=False)
+    assert bad.returncode == 2 and "--fps" in bad.stderr and not (tmp_path / "f").exists()

@@ -1,6 +1,7 @@
 """`iae-train`: train the Intrinsic Autoencoder (or a baseline), render and decompose."""
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -98,16 +99,20 @@ def diagnose(run_dir, probe, checkpoint, batch, seed, json_out, device) -> None:
 @click.option("--side-by-side", is_flag=True,
               help="Video frames show normal, albedo, reflection, R's image and (PBR data) Cycles' image.")
 @click.option("--fps", default=12.0, show_default=True, type=click.FloatRange(min=1, max=120))
+@click.option("--force", is_flag=True, help="Replace an existing --video file (never one inside a run folder).")
 @click.option("--quiet", is_flag=True)
-def render(run_dir, intrinsics, out, style_seed, limit, device, video, side_by_side, fps, quiet) -> None:
+def render(run_dir, intrinsics, out, style_seed, limit, device, video, side_by_side, fps, force, quiet) -> None:
     """Apply R to an intrinsics dataset: one sRGB PNG per sample (and optionally a video)."""
     from .inference import render_dataset
 
     if side_by_side and video is None:
         raise click.UsageError("--side-by-side needs --video FILE")
+    if not math.isfinite(fps):  # click's range lets NaN through
+        raise click.BadParameter(f"{fps}: expected frames per second between 1 and 120", param_hint="--fps")
     with one_line_errors():
         paths = render_dataset(run_dir, intrinsics, out, _device(device), style_seed=style_seed, limit=limit,
-                               progress=not quiet, video=video, side_by_side=side_by_side, fps=fps)
+                               progress=not quiet, video=video, side_by_side=side_by_side, fps=fps,
+                               force_video=force)
     click.echo(f"{out}: {len(paths)} images" + (f"; video {video}" if video else ""))
 
 
@@ -136,14 +141,15 @@ def decompose(run_dir, images, out, limit, device, quiet) -> None:
 @click.option("--resolution", default=None, help="WIDTHxHEIGHT of the exported network (default: the training size).")
 @click.option("--half", is_flag=True, help="float16 weights and tensors (for GPU runtimes).")
 @click.option("--no-check", is_flag=True, help="Skip comparing the file's output with PyTorch's.")
-def export(run_dir, net, fmt, out, resolution, half, no_check) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing --out file (never one inside a run folder).")
+def export(run_dir, net, fmt, out, resolution, half, no_check, force) -> None:
     """Write R or H of a run's newest checkpoint as ONNX or TorchScript, with its tensor conventions
     (channels, encodings, ranges, run and checkpoint) in the file's metadata; batch size is dynamic."""
     from .export import export_network, parse_resolution
 
     with one_line_errors():
         res = parse_resolution(resolution) if resolution else None
-        done = export_network(run_dir, net, fmt, out, res, half)
+        done = export_network(run_dir, net, fmt, out, res, half, force=force)
         click.echo(f"{out}: {net} of {run_dir} (step {done.metadata['step']}), {fmt}, "
                    f"{done.metadata['width']}x{done.metadata['height']}, {done.metadata['dtype']}")
         if not no_check and not (half and fmt == "torchscript"):  # CPU PyTorch lacks some float16 kernels

@@ -9,6 +9,7 @@ corrupt one with a one-line error and compares it with PyTorch's output.
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,28 @@ INTRINSICS_DOC = ("9 channels in this order: normal XYZ (camera space, unit leng
                   "albedo RGB; reflection RGB. Albedo and reflection are sRGB-encoded (IEC 61966-2-1) "
                   "linear values clipped to [0, 1], then mapped to [-1, 1] by x * 2 - 1.")
 IMAGE_DOC = "3 channels RGB, sRGB-encoded in [0, 1], mapped to [-1, 1] by x * 2 - 1."
+
+
+MAX_PIXELS = 4096 * 4096
+
+
+def refuse_output(out: Path, option: str, force: bool) -> Path:
+    """An output file must not replace an existing file (unless `force`) nor land inside a run
+    folder, where it could take the place of a checkpoint or a run's own file."""
+    out = Path(out)
+    for folder in [out.resolve().parent, *out.resolve().parent.parents]:
+        if (folder / "training_options.json").exists():
+            raise ExportError(f"{option} {out}: inside the run folder {folder}; write it elsewhere")
+    if out.exists() and not force:
+        raise ExportError(f"{option} {out}: exists; choose a new file or pass --force to replace it")
+    if out.exists() and not out.is_file():
+        raise ExportError(f"{option} {out}: exists and is not a file")
+    folder = out.resolve().parent
+    while not folder.exists():
+        folder = folder.parent
+    if not os.access(folder, os.W_OK):  # before any work: not "No such file" after all of it
+        raise ExportError(f"{option} {out}: {folder} is not writable")
+    return out
 
 
 class ExportError(ValueError):
@@ -69,6 +92,9 @@ def parse_resolution(text: str) -> tuple[int, int]:
         raise ExportError(f"--resolution {text!r}: expected WIDTHxHEIGHT, e.g. 512x256") from None
     if w < 8 or h < 8:
         raise ExportError(f"--resolution {text!r}: width and height must be at least 8")
+    if w * h > MAX_PIXELS:  # the trace runs one example: 100000x100000 would allocate ~360 GB first
+        raise ExportError(f"--resolution {text!r}: at most {MAX_PIXELS:,} pixels (e.g. 4096x4096); the batch "
+                          "size stays dynamic")
     return w, h
 
 
@@ -98,8 +124,10 @@ def _metadata(run_dir: Path, cfg, step: int, checkpoint: Path, net: str, fmt: st
 
 
 def export_network(run_dir: Path, net: str, fmt: str, out: Path, resolution: tuple[int, int] | None = None,
-                   half: bool = False, opset: int = 17) -> Exported:
-    """Write R or H of a run's newest checkpoint to `out` (atomically) and return its metadata."""
+                   half: bool = False, opset: int = 17, force: bool = False) -> Exported:
+    """Write R or H of a run's newest checkpoint to `out` (atomically) and return its metadata.
+    An existing `out` is refused unless `force`; a path inside a run folder always."""
+    refuse_output(out, "--out", force)
     if net not in NETS:
         raise ExportError(f"--net {net!r}: expected one of {', '.join(NETS)}")
     if fmt not in FORMATS:

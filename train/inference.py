@@ -67,7 +67,8 @@ def fresh_output(out: Path) -> Path:
 @torch.no_grad()
 def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cpu", batch: int = 4,
                    style_seed: int = 0, limit: int | None = None, progress: bool = True,
-                   video: Path | None = None, side_by_side: bool = False, fps: float = 12.0) -> list[Path]:
+                   video: Path | None = None, side_by_side: bool = False, fps: float = 12.0,
+                   force_video: bool = False) -> list[Path]:
     """R applied to every sample of an intrinsics dataset: one sRGB PNG per sample.
 
     `video` also assembles the frames in sample order (a turntable's path) into an MP4 or GIF;
@@ -77,7 +78,10 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
     from .video import check_video_path, display, side_by_side as join, write_video
 
     if video is not None:
+        from .export import refuse_output
+
         check_video_path(video)
+        refuse_output(video, "--video", force_video)  # checked before any frame is rendered
     cfg, model, _ = load_run(run_dir, device)
     data = IntrinsicsData(intrinsics, cfg.data.height, cfg.data.width)
     cycles = RealImages(intrinsics, cfg.data.height, cfg.data.width) if side_by_side and data.ds.kind == "pbr" else None
@@ -110,13 +114,13 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
 
 @torch.no_grad()
 def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu", batch: int = 4,
-                     limit: int | None = None, progress: bool = True) -> Path:
+                     limit: int | None = None, progress: bool = True, checkpoint: Path | None = None) -> Path:
     """H applied to photos or a PBR dataset, written as a `predictions` dataset (EXR + PNG previews).
 
     Predictions of a PBR dataset are resized back to its resolution and keep its sample
     indices, so `iae-eval decomposition --predictions` compares them pixel by pixel.
     """
-    cfg, model, step = load_run(run_dir, device)
+    cfg, model, step = load_run(run_dir, device, checkpoint)
     reals = RealImages(images, cfg.data.height, cfg.data.width)
     n = len(reals) if limit is None else min(limit, len(reals))
     out = fresh_output(out)

@@ -20,7 +20,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from blender_gen.dataset import atomic_write_json, save_png, write_json_lines
+from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
 from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict
 from .data import CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, infinite_loader
@@ -312,8 +312,25 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's).
 
     Ctrl-C or SIGTERM finishes the current step, saves a checkpoint and raises Interrupted.
+    One writer per run folder: the main process holds `RUN/.lock` (as dataset writers do), so a
+    second `fit` on the folder fails at once naming the process that trains it.
     """
     run_dir = Path(run_dir)
+    if int(os.environ.get("RANK", "0")) != 0:  # torchrun's other ranks write nothing
+        return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe)
+    created = not run_dir.exists()
+    try:
+        with locked_folder(run_dir, "--run-dir"):
+            return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe)
+    except BaseException:
+        if created and run_dir.is_dir() and folder_is_empty(run_dir):  # a refused start leaves no folder
+            (run_dir / LOCK_NAME).unlink(missing_ok=True)
+            run_dir.rmdir()
+        raise
+
+
+def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None, max_steps: int | None,
+         device: str, progress: bool, probe: str | None) -> dict:
     dd = init_distributed(device)
     if device.startswith("cuda") and dd.world > 1:
         device = f"cuda:{dd.local_rank}"
