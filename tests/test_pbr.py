@@ -77,7 +77,10 @@ def test_pbr_cli_dataset_previews_determinism_and_inspect(tmp_path):
     assert ra == rb and all(sha256_file(a / r["file"]) == r["sha256"] for r in ra)
     info = json.loads((a / "dataset.json").read_text())
     assert info["kind"] == "pbr" and info["recipe"]["samples"] == 8
-    assert {r["car"]["name"] for r in ra} <= {"sedan_e", "hatch_e", "wagon_d", "suv_e", "minivan_d", "van_e"}
+    from blender_gen.cars import load_catalogue
+
+    heldout = {c.name for c in load_catalogue().values() if c.split == "heldout"}
+    assert len(heldout) == 6 and {r["car"]["name"] for r in ra} <= heldout
     assert sorted(p.name for p in (a / "previews").glob("*.png")) == ["000000.png", "000001.png"]
     layers = read_exr(a / ra[0]["file"])
     assert set(layers) == {"rgb", "normal", "albedo", "reflection", "mask", "material"}
