@@ -21,6 +21,7 @@ from .render import SampleRenderer
 
 class PbrRenderer(SampleRenderer):
     physical = True
+    replay_blocks = True  # a sample = f(recipe, index), however the run that renders it was cut
 
     def _configure(self, threads: int) -> None:
         S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
