@@ -98,6 +98,15 @@ def build_study(a: Path, b: Path, out: Path, pairs: int, real: Path | None = Non
     """Write OUT/study.html (self-contained) and OUT/study.json (the key, for the record)."""
     files_a, files_b = list_images(a, "--a"), list_images(b, "--b")
     files_real = list_images(real, "--real") if real else None
+    names_b = {p.name for p in files_b}
+    shared = sum(p.name in names_b for p in files_a)
+    limits = {"A-vs-B scenes": shared or len(files_a) * len(files_b)}
+    if files_real:
+        limits.update({"A-vs-photo pairs": len(files_a) * len(files_real),
+                       "B-vs-photo pairs": len(files_b) * len(files_real)})
+    what, most = min(limits.items(), key=lambda t: t[1])
+    if pairs > most:  # more would only repeat pairs
+        raise StudyError(f"--pairs {pairs}: the images give only {most} distinct {what}; choose at most {most}")
     plan = make_pairs(files_a, files_b, files_real, pairs, seed)
     uris: dict[str, str] = {}
     for p in plan:
@@ -118,8 +127,12 @@ def build_study(a: Path, b: Path, out: Path, pairs: int, real: Path | None = Non
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "study.json", json.dumps(key, indent=1).encode())
-    page = _PAGE.replace("__DATA__", json.dumps(page_data).replace("</", "<\\/")).replace(
-        "__TITLE__", html.escape(f"Which looks more like a real photo? ({len(plan)} pairs)"))
+    # The title first, the data last: nothing inside the data (labels are user text) is ever read
+    # as a placeholder. In the data, <, > and & are JSON escapes, so no label can end the script
+    # element or open an HTML comment inside it ('</script>', '<!--').
+    data = json.dumps(page_data).replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+    page = _PAGE.replace("__TITLE__", html.escape(f"Which looks more like a real photo? ({len(plan)} pairs)"))
+    page = page.replace("__DATA__", data)
     atomic_write_bytes(out / "study.html", page.encode())
     return out / "study.html"
 
@@ -135,7 +148,29 @@ def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def read_answers(path: Path) -> dict:
+def read_key(path: Path) -> dict:
+    """The study's own key (`study.json`, written by `ab-study`): its id, labels and pairs."""
+    path = Path(path)
+    try:
+        key = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StudyError(f"--study {path}: no such file (the study.json that `ab-study` wrote)") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StudyError(f"--study {path}: not a JSON study key ({exc})") from None
+    ok = isinstance(key, dict) and key.get("schema") == SCHEMA and isinstance(key.get("study"), str) \
+        and isinstance(key.get("labels"), dict) and isinstance(key.get("pairs"), list)
+    if ok:
+        ok = all(isinstance(key["labels"].get(k), str) for k in ("A", "B", "real")) and all(
+            isinstance(p, dict) and isinstance(p.get("pair"), int) and p.get("kind") in KINDS
+            and {p.get("left"), p.get("right")} == set(KINDS[p["kind"]]) for p in key["pairs"])
+    if not ok:
+        raise StudyError(f"--study {path}: not the study.json of `iae-eval ab-study` (schema {SCHEMA})")
+    return key
+
+
+def read_answers(path: Path, key: dict) -> dict:
+    """One participant's answers, checked against the study's key: every answer names a pair of
+    the study, its kind and one of its two sides; each pair is answered at most once."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -145,23 +180,47 @@ def read_answers(path: Path) -> dict:
         raise StudyError(f"{path}: not a JSON answer file ({exc})") from None
     if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("answers"), list):
         raise StudyError(f"{path}: not an answer file of `iae-eval ab-study` (expected schema {SCHEMA})")
+    if data.get("study") != key["study"]:
+        raise StudyError(f"{path}: answers to study {str(data.get('study'))[:40]!r}, not {key['study']!r} "
+                         "(the --study key); summarise one study at a time")
+    if not isinstance(data.get("participant", ""), str):
+        raise StudyError(f"{path}: 'participant' must be a string")
+    pairs = {p["pair"]: p for p in key["pairs"]}
+    seen: set[int] = set()
     for i, ans in enumerate(data["answers"]):
-        if not isinstance(ans, dict) or ans.get("chosen") not in ("A", "B", "real") or ans.get("kind") not in KINDS \
-                or ans["chosen"] not in KINDS[ans["kind"]]:
-            raise StudyError(f"{path}: answer {i} is malformed ({json.dumps(ans)[:120]})")
+        p = pairs.get(ans.get("pair")) if isinstance(ans, dict) and isinstance(ans.get("pair"), int) else None
+        if p is None or ans.get("kind") != p["kind"] or ans.get("chosen") not in (p["left"], p["right"]):
+            raise StudyError(f"{path}: answer {i} is malformed or names no pair of this study "
+                             f"({json.dumps(ans)[:120]})")
+        if p["pair"] in seen:
+            raise StudyError(f"{path}: pair {p['pair']} is answered twice; one answer per participant and pair")
+        seen.add(p["pair"])
     return data
 
 
-def summarise(paths: list[Path]) -> dict:
-    """Pool answer files of one study: per comparison, how often the first of the two was chosen."""
+def summarise(paths: list[Path], study: Path) -> dict:
+    """Pool answer files of one study: per comparison, how often the first of the two was chosen.
+
+    Labels come from the study's key, never from answer files (participants can edit those); a
+    file given twice, or two files of one named participant, are refused.
+    """
     if not paths:
         raise StudyError("no answer files given")
-    files = [read_answers(p) for p in paths]
-    study = files[0]["study"]
+    key = read_key(study)
+    files = [read_answers(p, key) for p in paths]
+    digests: dict[str, Path] = {}
+    names: dict[str, Path] = {}
     for p, f in zip(paths, files):
-        if f["study"] != study:
-            raise StudyError(f"{p}: answers to study {f['study']}, not {study} (of {paths[0]}); summarise one study at a time")
-    labels = files[0]["labels"]
+        d = hashlib.sha256(json.dumps(f["answers"], sort_keys=True).encode()).hexdigest()
+        if d in digests:
+            raise StudyError(f"{p}: the same answers as {digests[d]}; give each participant's file once")
+        digests[d] = p
+        who = (f.get("participant") or "").strip()
+        if who and who in names:
+            raise StudyError(f"{p}: participant {who!r} already answered in {names[who]}; one file per participant")
+        if who:
+            names[who] = p
+    labels = key["labels"]
     rows = []
     for kind, (first, second) in KINDS.items():
         answers = [a for f in files for a in f["answers"] if a["kind"] == kind]
@@ -174,7 +233,7 @@ def summarise(paths: list[Path]) -> dict:
         rows.append({"comparison": f"{labels[first]} vs {labels[second]}", "kind": kind, "chosen": labels[first],
                      "k": k, "n": len(answers), "ratio": k / len(answers), "ci95": [lo, hi],
                      "per_participant": per})
-    return {"study": study, "participants": [f.get("participant") or "(anonymous)" for f in files],
+    return {"study": key["study"], "participants": [f.get("participant") or "(anonymous)" for f in files],
             "files": [str(p) for p in paths], "rows": rows}
 
 

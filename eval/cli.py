@@ -182,20 +182,22 @@ def ab_study(a, b, real, pairs, out, label_a, label_b, height, seed) -> None:
 
     with one_line_errors():
         page = build_study(a, b, out, pairs, real, seed, label_a, label_b, height)
-    click.echo(f"{page}: open it in a browser, answer, download the answers; then `iae-eval ab-summary FILES`")
+    click.echo(f"{page}: open it in a browser, answer, download the answers; then `iae-eval ab-summary --study {page.parent / 'study.json'} FILES`")
 
 
 @main.command("ab-summary")
 @click.argument("answers", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--study", "study", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The study's key, STUDY/study.json (labels and pairs come from it, not from answer files).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the summary as JSON.")
-def ab_summary(answers, out) -> None:
+def ab_summary(answers, study, out) -> None:
     """Table-2-like ratios of one study's answer files, with Wilson 95% confidence intervals."""
     from blender_gen.dataset import atomic_write_json
 
     from .ab_study import format_summary, summarise
 
     with one_line_errors():
-        s = summarise(list(answers))
+        s = summarise(list(answers), study)
         if out:
             atomic_write_json(out, s)
     click.echo(format_summary(s))
