@@ -16,6 +16,7 @@ import numpy as np
 from . import scene as S
 from .conversions import preview_srgb8
 from .dataset import save_png
+from .quiet import without_lines
 from .render import SampleRenderer
 
 
@@ -24,6 +25,12 @@ class PbrRenderer(SampleRenderer):
     replay_blocks = True  # a sample = f(recipe, index), however the run that renders it was cut
 
     def _configure(self, threads: int) -> None:
+        # Denoiser settings make Cycles probe for CUDA; on a machine without it every worker printed
+        # "WARNING CUEW initialization failed", which reads as an error. Other messages go through.
+        with without_lines("CUEW initialization failed"):
+            self._configure_cycles(threads)
+
+    def _configure_cycles(self, threads: int) -> None:
         S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
         cy = self.scene.cycles
         cy.use_adaptive_sampling = True

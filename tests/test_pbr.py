@@ -109,10 +109,23 @@ def test_a_deleted_sample_of_a_block_is_rerendered_byte_identical(tmp_path, kind
     out = tmp_path / kind
     args = (kind, "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet",
             *(["--samples", "2"] if kind == "pbr" else []))
-    run_gen(*args)
+    proc = run_gen(*args)
+    assert "CUEW" not in proc.stdout + proc.stderr, "the expected CUDA probe warning is not shown (issue 19.13)"
     for index in (1, 2):
         path = out / "samples" / f"{index:06d}.exr"
         before = path.read_bytes()
         path.unlink()
         run_gen(*args)
         assert path.read_bytes() == before, f"sample {index} re-rendered differently"
+
+
+def test_dropping_expected_lines_keeps_every_other_line(capfd):
+    import os
+
+    from blender_gen.quiet import without_lines
+
+    with without_lines("CUEW initialization failed"):
+        os.write(1, b"00:00.4 cycles | WARNING CUEW initialization failed: Error opening the library\nSaved: x\n")
+        os.write(2, b"a real warning\n")
+    out, err = capfd.readouterr()
+    assert out == "Saved: x\n" and err == "a real warning\n"
