@@ -158,8 +158,16 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
 
 
 def _run(recipe: Recipe, o: dict) -> None:
-    with one_line_errors():
-        info = generate(recipe, o["out"], o["count"], workers=o["workers"], shard=o["shard"], progress=not o["quiet"])
+    from .generate import Interrupted
+
+    try:
+        with one_line_errors():
+            info = generate(recipe, o["out"], o["count"], workers=o["workers"], shard=o["shard"],
+                            progress=not o["quiet"])
+    except Interrupted as exc:
+        click.echo(f"{o['out']}: stopped; every finished sample is kept: run the same command again to resume",
+                   err=True)
+        sys.exit(128 + exc.signum)
     n, secs = info["_rendered"], info["_seconds"]
     rate = f", {n / secs:.2f} samples/s" if n and secs > 0 else ""
     click.echo(f"{o['out']}: {info['count']} samples ({n} rendered now in {secs:.1f} s{rate})")

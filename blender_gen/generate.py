@@ -14,6 +14,7 @@ import platform
 import shutil
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from tqdm import tqdm
@@ -132,8 +133,46 @@ def die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
+class Interrupted(Exception):
+    """Ctrl-C or SIGTERM: the sample being rendered was finished and recorded, then the run stopped."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"stopped by signal {signum}")
+        self.signum = signum
+
+
+@contextmanager
+def _stop_requests():
+    """One Ctrl-C (or SIGTERM) asks the run to stop after the sample being rendered; a second stops
+    at once. A flag, not an exception: an exception raised inside Blender's render is printed as a
+    traceback and swallowed, and the render went on (issue 19.9)."""
+    import signal
+    import threading
+
+    state = {"signum": None}
+    if threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def handler(signum, frame) -> None:
+        if state["signum"] is not None:
+            os._exit(128 + signum)
+        state["signum"] = signum
+        print("\nstopping after the current sample (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield state
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def _init_worker(recipe: Recipe, threads: int, parent: int) -> None:
+    import signal
+
     global _worker
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop (Ctrl-C reaches the group)
     die_with_parent(parent)
     _worker = make_renderer(recipe, threads)
 
@@ -194,6 +233,8 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
     def finish() -> dict:
         return writer.finish(expected=total)
 
+    stops = _stop_requests()
+    stop = stops.__enter__()
     try:
         if todo and workers == 1:
             renderer = make_renderer(recipe, threads)
@@ -202,6 +243,8 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
                     writer.append(renderer.render(i, out))
                     rendered += 1
                     bar.update()
+                    if stop["signum"] is not None:
+                        raise Interrupted(stop["signum"])
             finally:
                 renderer.close()
         elif todo:
@@ -215,6 +258,8 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
                     writer.append(row)
                     rendered += 1
                     bar.update()
+                    if stop["signum"] is not None:
+                        raise Interrupted(stop["signum"])
             except BaseException:
                 _stop_pool(pool)  # queued work must not keep running after a failure or Ctrl-C
                 raise
@@ -229,6 +274,8 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_
         except Exception:
             pass
         raise
+    finally:
+        stops.__exit__(None, None, None)
     bar.close()
     info = finish()
     elapsed = time.perf_counter() - started

@@ -127,3 +127,32 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     assert r["cycles"]["frames"] == FRAMES and r["cycles"]["whole_frame"] > 0
     assert r["ratio_whole_frame"] == pytest.approx(r["renderer"]["whole_frame"] / r["cycles"]["whole_frame"])
     assert "Cycles (reference)" in proc.stdout
+
+
+def test_one_ctrl_c_during_a_cycles_render_stops_cleanly_and_resumes(tmp_path):
+    """Issue 19.9: the first Ctrl-C printed a traceback and the run went on to exit 0."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from blender_gen.dataset import read_manifest
+
+    from .conftest import ROOT
+
+    out = tmp_path / "tt"
+    args = ["turntable", "--out", str(out), "--car", "sedan_a", "--frames", "40", "--resolution", "64x32", "--pbr",
+            "--samples", "4", "--quiet"]
+    proc = subprocess.Popen([sys.executable, "-m", "blender_gen.cli", *args], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 180
+    while time.time() < deadline and len(read_manifest(out / "manifest.jsonl")) < 1:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=180)
+    assert proc.returncode == 130, (proc.returncode, stderr[-500:])
+    assert "Traceback" not in stderr and "run the same command again to resume" in stderr
+    done = read_manifest(out / "manifest.jsonl")
+    assert 1 <= len(done) < 40
+    run_gen(*args)
+    assert len(read_manifest(out / "manifest.jsonl")) == 40
