@@ -272,8 +272,16 @@ class Dataset:
     def path(self, i: int) -> Path:
         return self.root / self.rows[i]["file"]
 
-    def load(self, i: int, layers: Iterable[str] | None = None) -> dict[str, np.ndarray]:
-        return read_exr(self.path(i), layers)
+    def load(self, i: int, layers: Iterable[str] | None = None, verify: bool = True) -> dict[str, np.ndarray]:
+        """Sample i's layers; `verify` first checks the file against its manifest checksum (a
+        valid EXR copied over another sample would otherwise be read as that sample). Hashing
+        costs a few percent of decoding an EXR."""
+        path = self.path(i)
+        if verify and self.rows[i].get("sha256") and sha256_file(path) != self.rows[i]["sha256"]:
+            raise DatasetError(f"{path}: checksum mismatch with {self.root / 'manifest.jsonl'} (sample "
+                               f"{self.rows[i]['index']}): not the file the dataset recorded; `iae-gen inspect "
+                               f"{self.root}` lists every bad sample, rerunning its generator redoes them")
+        return read_exr(path, layers)
 
     def __iter__(self) -> Iterator[dict]:
         return iter(self.rows)

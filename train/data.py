@@ -73,6 +73,9 @@ class IntrinsicsData(Dataset):
     def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
         index, flip = item
         layers = self.ds.load(index, INTRINSIC_LAYERS)
+        for k in INTRINSIC_LAYERS:  # NaN/inf would stop training as "non-finite loss" naming no file
+            if not np.isfinite(layers[k]).all():
+                raise DatasetError(f"{self.ds.path(index)}: layer {k!r} holds NaN or infinite values")
         stack = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], axis=-1)
         m = cover_crop(torch.from_numpy(stack).permute(2, 0, 1).contiguous(), self.h, self.w)
         return flip_stack(m) if flip else m
@@ -136,7 +139,10 @@ class RealImages(Dataset):
     def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
         index, flip = item
         if self.ds is not None:
-            arr = to_network("rgb", self.ds.load(index, ["rgb"])["rgb"])
+            rgb = self.ds.load(index, ["rgb"])["rgb"]
+            if not np.isfinite(rgb).all():
+                raise DatasetError(f"{self.ds.path(index)}: layer 'rgb' holds NaN or infinite values")
+            arr = to_network("rgb", rgb)
         else:
             arr = self.load_photo(self.files[index])
         t = cover_crop(torch.from_numpy(arr).permute(2, 0, 1).contiguous(), self.h, self.w)

@@ -1,0 +1,56 @@
+"""Issue 19.14: a sample file swapped for another valid EXR, or holding NaN, is named at once by
+training and inference instead of being used silently (or stopping training as "non-finite loss")."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+
+from blender_gen.dataset import read_exr, sha256_file, write_exr
+
+from .conftest import ROOT
+from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+
+
+def _train(*args):
+    return subprocess.run([sys.executable, "-m", "train.cli", *args], cwd=ROOT, capture_output=True, text=True)
+
+
+def _fit(run, intr, photos, steps="2"):
+    return _train("fit", "--run-dir", str(run), "--config", "cpu-small", "--intrinsics", str(intr), "--real",
+                  str(photos), "--max-steps", steps, "--quiet", "--set", "data.cache_gb=0", *TINY)
+
+
+def test_a_sample_replaced_by_another_valid_exr_is_refused(tmp_path):
+    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
+    run = tmp_path / "run"
+    assert _fit(run, intr, photos).returncode == 0
+    shutil.copy(intr / "samples" / "000001.exr", intr / "samples" / "000000.exr")
+    bad = _fit(tmp_path / "run2", intr, photos)
+    assert bad.returncode == 1 and "Traceback" not in bad.stderr
+    assert "000000.exr: checksum mismatch" in bad.stderr
+    render = _train("render", "--run", str(run), "--intrinsics", str(intr), "--out", str(tmp_path / "r"), "--quiet")
+    assert render.returncode == 1 and "000000.exr: checksum mismatch" in render.stderr
+
+
+def test_nan_in_a_sample_names_the_sample(tmp_path):
+    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
+    run = tmp_path / "run"
+    assert _fit(run, intr, photos).returncode == 0
+    path = intr / "samples" / "000002.exr"
+    layers = read_exr(path)
+    layers["normal"][5, 5] = np.nan
+    write_exr(path, layers)
+    rows = [json.loads(line) for line in (intr / "manifest.jsonl").read_text().splitlines()]
+    for r in rows:
+        if r["index"] == 2:
+            r["sha256"] = sha256_file(path)  # a consistent manifest: the file itself is bad
+    (intr / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    bad = _fit(tmp_path / "run2", intr, photos, steps="4")
+    assert bad.returncode == 1 and "000002.exr: layer 'normal' holds NaN" in bad.stderr
+    assert "non-finite loss" not in bad.stderr and "Traceback" not in bad.stderr
+    render = _train("render", "--run", str(run), "--intrinsics", str(intr), "--out", str(tmp_path / "r"), "--quiet")
+    assert render.returncode == 1 and "000002.exr: layer 'normal' holds NaN" in render.stderr
