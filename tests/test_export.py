@@ -134,3 +134,39 @@ def test_a_nan_frame_rate_is_refused_before_rendering(runs, tmp_path):
     bad = _run("render", "--run", str(runs[0]), "--intrinsics", str(intr), "--out", str(tmp_path / "f"),
                "--video", str(tmp_path / "v.gif"), "--fps", "nan", "--quiet", check=False)
     assert bad.returncode == 2 and "--fps" in bad.stderr and not (tmp_path / "f").exists()
+
+
+def test_edited_metadata_is_a_one_line_error(runs, tmp_path):
+    """Issue 19.10: height as a string or huge, `net` missing or changed, metadata as a JSON list."""
+    import onnx
+
+    from train.export import EXTRA_FILE
+
+    src = tmp_path / "R.onnx"
+    _run("export", "--run", str(runs[0]), "--net", "R", "--out", str(src), "--no-check")
+
+    def edited(name, change):
+        proto = onnx.load(str(src))
+        meta = {p.key: json.loads(p.value) for p in proto.metadata_props}
+        change(meta)
+        del proto.metadata_props[:]
+        for k, v in meta.items():
+            proto.metadata_props.add(key=k, value=json.dumps(v))
+        onnx.save(proto, str(tmp_path / name))
+        return tmp_path / name
+
+    cases = {
+        "string.onnx": (lambda m: m.update(height="32"), "'height'"),
+        "huge.onnx": (lambda m: m.update(height=10**6, width=10**6), "at most"),
+        "nonet.onnx": (lambda m: m.pop("net"), "'net'"),
+        "swapped.onnx": (lambda m: m.update(net="H"), "metadata"),
+    }
+    for name, (change, message) in cases.items():
+        proc = _run("check-export", str(edited(name, change)), "--run", str(runs[0]), check=False)
+        assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr, (name, proc.stderr)
+    ts = tmp_path / "R.pt"
+    _run("export", "--run", str(runs[0]), "--net", "R", "--format", "torchscript", "--out", str(ts), "--no-check")
+    module = torch.jit.load(str(ts))
+    torch.jit.save(module, str(tmp_path / "list.pt"), _extra_files={EXTRA_FILE: json.dumps([1, 2])})
+    proc = _run("check-export", str(tmp_path / "list.pt"), "--run", str(runs[0]), check=False)
+    assert proc.returncode == 1 and "without this project's export metadata" in proc.stderr and "Traceback" not in proc.stderr

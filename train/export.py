@@ -197,9 +197,35 @@ def read_metadata(path: Path) -> dict:
     except Exception as exc:  # onnx/protobuf and TorchScript raise many kinds on a damaged file
         raise ExportError(f"{path}: not a readable {fmt} file ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0] if str(exc) else 'damaged'})") from None
-    if meta.get("schema") != SCHEMA:
+    if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
         raise ExportError(f"{path}: a {fmt} file without this project's export metadata (expected schema {SCHEMA})")
+    _check_metadata(path, meta)
     return meta
+
+
+def _check_metadata(path: Path, meta: dict) -> None:
+    """Types and ranges of the fields the checks use, before any of them runs (an edited height of
+    10^6 would first allocate gigabytes)."""
+    def bad(field: str, expected: str) -> ExportError:
+        return ExportError(f"{path}: export metadata field {field!r} is {str(meta.get(field))[:40]!r}; expected "
+                           f"{expected} (edited or damaged: export it again)")
+
+    if meta.get("net") not in NETS:
+        raise bad("net", " or ".join(NETS))
+    if meta.get("format") not in FORMATS:
+        raise bad("format", " or ".join(FORMATS))
+    if meta.get("dtype") not in ("float32", "float16"):
+        raise bad("dtype", "float32 or float16")
+    for f in ("height", "width", "step"):
+        if not isinstance(meta.get(f), int) or isinstance(meta.get(f), bool) or meta[f] < (0 if f == "step" else 8):
+            raise bad(f, "an integer" + ("" if f == "step" else " of at least 8"))
+    if meta["height"] * meta["width"] > MAX_PIXELS:
+        raise bad("height", f"a size of at most {MAX_PIXELS:,} pixels")
+    if not isinstance(meta.get("run"), str):
+        raise bad("run", "the run folder's path")
+    sha = meta.get("checkpoint_sha256")
+    if not (isinstance(sha, str) and len(sha) == 64 and all(c in "0123456789abcdef" for c in sha)):
+        raise bad("checkpoint_sha256", "64 hex digits")
 
 
 class ExportedNet:
@@ -245,7 +271,13 @@ def check_export(path: Path, run_dir: Path, batch: int = 2, seed: int = 0) -> di
     with torch.no_grad():
         xt = torch.from_numpy(x)
         ref = (model.render(xt) if meta["net"] == "R" else model.decompose(xt)).numpy()
-    got = ExportedNet(path)(x).astype(np.float32)
+    try:
+        got = ExportedNet(path)(x).astype(np.float32)
+    except Exception as exc:  # ONNX Runtime / TorchScript: a file that is not the network its metadata names
+        raise ExportError(f"{path}: does not run as its metadata says ({meta['net']}, {meta['width']}x"
+                          f"{meta['height']}): {type(exc).__name__}; export it again") from None
+    if got.shape != ref.shape:
+        raise ExportError(f"{path}: gives {got.shape}, its metadata's {meta['net']} gives {ref.shape}; export it again")
     diff = np.abs(got - ref)
     tol = 2e-2 if meta["dtype"] == "float16" else 1e-4
     return {"max_abs_diff": float(diff.max()), "mean_abs_diff": float(diff.mean()), "tolerance": tol,
