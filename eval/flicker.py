@@ -61,6 +61,9 @@ def measure_flicker(run_dir: Path, path: Path, device: str = "cpu") -> dict:
     if data.ds.kind != "pbr":
         raise ValueError(f"--path {path}: flicker needs Cycles' frames of the path (`iae-gen turntable --pbr`), "
                          f"got a dataset of kind {data.ds.kind!r}")
+    if not (data.ds.info.get("recipe") or {}).get("orbit"):  # random views: their ratios would mean nothing
+        raise ValueError(f"--path {path}: not a camera path (made by `iae-gen pbr`, not `iae-gen turntable --pbr`); "
+                         "flicker compares consecutive frames of one orbit")
     cycles_set = RealImages(path, h, w)
     n = len(data)
     r_frames, c_frames, masks = [], [], []
@@ -73,6 +76,9 @@ def measure_flicker(run_dir: Path, path: Path, device: str = "cpu") -> dict:
         masks.append(cover_crop(torch.from_numpy(mask).permute(2, 0, 1).contiguous(), h, w)[0].numpy() > 0)
     rf, cf, mf = np.stack(r_frames), np.stack(c_frames), np.stack(masks)
     r, c = frame_differences(rf, mf), frame_differences(cf, mf)
+    if c["whole_frame"] == 0:
+        raise ValueError(f"--path {path}: Cycles' frames do not change along the path (a still camera?): there is "
+                         "no motion to compare R's change with")
     return {"run": str(run_dir), "step": step, "path": str(path), "size": [w, h], "renderer": r, "cycles": c,
             "temporal_error": temporal_error(rf, cf, mf),
             "ratio_whole_frame": r["whole_frame"] / c["whole_frame"],

@@ -54,3 +54,18 @@ def test_nan_in_a_sample_names_the_sample(tmp_path):
     assert "non-finite loss" not in bad.stderr and "Traceback" not in bad.stderr
     render = _train("render", "--run", str(run), "--intrinsics", str(intr), "--out", str(tmp_path / "r"), "--quiet")
     assert render.returncode == 1 and "000002.exr: layer 'normal' holds NaN" in render.stderr
+
+
+def test_decompose_of_a_bomb_image_leaves_no_half_written_out(tmp_path):
+    """Issue 19.10: a decompression-bomb photo mid-way was a traceback and left a partial --out."""
+    from PIL import Image
+
+    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos", n=6)
+    run = tmp_path / "run"
+    assert _fit(run, intr, photos).returncode == 0
+    big = Image.new("1", (14000, 14000))  # 196 MP: over twice Pillow's limit, a bomb
+    big.save(photos / "zz_bomb.png", optimize=False, compress_level=1)
+    out = tmp_path / "pred"
+    bad = _train("decompose", "--run", str(run), "--images", str(photos), "--out", str(out), "--quiet")
+    assert bad.returncode == 1 and "zz_bomb.png" in bad.stderr and "Traceback" not in bad.stderr
+    assert not out.exists()

@@ -127,6 +127,25 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     assert r["cycles"]["frames"] == FRAMES and r["cycles"]["whole_frame"] > 0
     assert r["ratio_whole_frame"] == pytest.approx(r["renderer"]["whole_frame"] / r["cycles"]["whole_frame"])
     assert "Cycles (reference)" in proc.stdout
+    # issue 19.10: a PBR set that is not a camera path, and a path whose Cycles frames never change
+    import shutil
+
+    from .train_helpers import tiny_intrinsics as blobs
+
+    not_a_path = blobs(tmp_path / "random_views", kind="pbr")
+    (not_a_path / "dataset.json").write_text(json.dumps({**json.loads((paths / "pbr" / "dataset.json").read_text()),
+                                                         "recipe": {"kind": "pbr", "orbit": None}}))
+    still = tmp_path / "still"
+    shutil.copytree(paths / "pbr", still)
+    rows = [json.loads(line) for line in (still / "manifest.jsonl").read_text().splitlines()]
+    for r in rows[1:]:
+        shutil.copy(still / rows[0]["file"], still / r["file"])
+        r["sha256"] = rows[0]["sha256"]
+    (still / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    for folder, message in ((not_a_path, "not a camera path"), (still, "do not change along the path")):
+        bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(folder)],
+                             cwd=ROOT, capture_output=True, text=True)
+        assert bad.returncode == 1 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
 
 
 def test_one_ctrl_c_during_a_cycles_render_stops_cleanly_and_resumes(tmp_path):

@@ -124,6 +124,18 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
     reals = RealImages(images, cfg.data.height, cfg.data.width)
     n = len(reals) if limit is None else min(limit, len(reals))
     out = fresh_output(out)
+    try:
+        return _decompose_into(out, run_dir, images, cfg, model, step, reals, n, device, batch, limit, progress)
+    except BaseException:  # a bad image mid-way: no half-written predictions that look like a result
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+@torch.no_grad()
+def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: int, reals, n: int, device: str,
+                    batch: int, limit: int | None, progress: bool) -> Path:
     (out / "previews").mkdir(exist_ok=True)
     if reals.ds is not None:
         src_w, src_h = reals.ds.resolution
