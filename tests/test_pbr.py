@@ -101,7 +101,11 @@ def test_pbr_resumes_and_rejects_bad_input(tmp_path):
     assert bad.returncode != 0 and "Invalid value for '--samples'" in bad.stderr
 
 
-@pytest.mark.parametrize("kind", ["pbr", "intrinsics"])
+@pytest.mark.parametrize("kind", [
+    pytest.param("pbr", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 19.2, open: with Cycles' persistent data a PBR sample depends on the renders before it; "
+        "a fresh session per block fixes that but then disagrees with the intrinsics render (README)"))),
+    "intrinsics"])
 def test_a_deleted_sample_of_a_block_is_rerendered_byte_identical(tmp_path, kind):
     """Issue 19.2: a sample is a pure function of recipe and index, however the run that renders it
     was cut: delete any sample of a multi-sample block, resume, compare bytes (PBR replays the
@@ -109,8 +113,7 @@ def test_a_deleted_sample_of_a_block_is_rerendered_byte_identical(tmp_path, kind
     out = tmp_path / kind
     args = (kind, "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet",
             *(["--samples", "2"] if kind == "pbr" else []))
-    proc = run_gen(*args)
-    assert "CUEW" not in proc.stdout + proc.stderr, "the expected CUDA probe warning is not shown (issue 19.13)"
+    run_gen(*args)
     for index in (1, 2):
         path = out / "samples" / f"{index:06d}.exr"
         before = path.read_bytes()
@@ -129,3 +132,9 @@ def test_dropping_expected_lines_keeps_every_other_line(capfd):
         os.write(2, b"a real warning\n")
     out, err = capfd.readouterr()
     assert out == "Saved: x\n" and err == "a real warning\n"
+
+
+def test_pbr_generation_does_not_print_the_cuda_probe_warning(tmp_path):
+    """Issue 19.13: every PBR worker printed Cycles' 'CUEW initialization failed' (to stdout)."""
+    proc = run_gen("pbr", "--out", str(tmp_path / "p"), "--count", "1", "--resolution", "64x32", "--samples", "1")
+    assert "CUEW" not in proc.stdout + proc.stderr and "1 samples" in proc.stdout
