@@ -148,15 +148,22 @@ def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def _read_json(path: Path, missing: str, malformed: str):
+    """A JSON file, or a one-line StudyError: `missing` when absent, `malformed` (plus the parser's
+    reason) when it is not JSON."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StudyError(missing) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise StudyError(f"{malformed} ({exc})") from None
+
+
 def read_key(path: Path) -> dict:
     """The study's own key (`study.json`, written by `ab-study`): its id, labels and pairs."""
     path = Path(path)
-    try:
-        key = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise StudyError(f"--study {path}: no such file (the study.json that `ab-study` wrote)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StudyError(f"--study {path}: not a JSON study key ({exc})") from None
+    key = _read_json(path, f"--study {path}: no such file (the study.json that `ab-study` wrote)",
+                     f"--study {path}: not a JSON study key")
     ok = isinstance(key, dict) and key.get("schema") == SCHEMA and isinstance(key.get("study"), str) \
         and isinstance(key.get("labels"), dict) and isinstance(key.get("pairs"), list)
     if ok:
@@ -172,12 +179,7 @@ def read_answers(path: Path, key: dict) -> dict:
     """One participant's answers, checked against the study's key: every answer names a pair of
     the study, its kind and one of its two sides; each pair is answered at most once."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise StudyError(f"{path}: no such answer file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StudyError(f"{path}: not a JSON answer file ({exc})") from None
+    data = _read_json(path, f"{path}: no such answer file", f"{path}: not a JSON answer file")
     if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("answers"), list):
         raise StudyError(f"{path}: not an answer file of `iae-eval ab-study` (expected schema {SCHEMA})")
     if data.get("study") != key["study"]:
