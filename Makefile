@@ -57,6 +57,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_pbr.py --views 3 --samples 4 8 16 --reference 128
 	$(PY) bench/bench_cars.py
 	$(PY) bench/bench_car_diversity.py
+	$(PY) bench/bench_labeller.py
 	$(PY) bench/bench_train.py --kinds iae cyclegan munit
 	$(PY) bench/bench_train.py
 	$(PY) bench/bench_eval.py

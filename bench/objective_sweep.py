@@ -55,9 +55,13 @@ def pack(args) -> None:
         if args.setting == "s1":
             xr = masked_black(xr, mr)
             probe.images = masked_black(probe.images, probe.masks)
-    f16 = lambda t: t.numpy().astype(np.float16)  # noqa: E731
-    np.savez_compressed(args.out, MS=f16(ms), XR=f16(xr), YR=f16(yr), PX=f16(probe.images), PY=f16(probe.maps),
-                        PM=f16(probe.masks), setting=args.setting)
+    if args.dtype == "uint8":  # 4x smaller than float32: a 64x128 protocol set fits a device transfer
+        enc = lambda t: np.round((t.numpy().clip(-1, 1) + 1) * 127.5).astype(np.uint8)  # noqa: E731
+        enc_mask = lambda t: np.round(t.numpy().clip(0, 1) * 255).astype(np.uint8)  # noqa: E731
+    else:
+        enc = enc_mask = lambda t: t.numpy().astype(np.float16)  # noqa: E731
+    np.savez_compressed(args.out, MS=enc(ms), XR=enc(xr), YR=enc(yr), PX=enc(probe.images), PY=enc(probe.maps),
+                        PM=enc_mask(probe.masks), setting=args.setting)
     print(f"{args.out}: M_s {tuple(ms.shape)}, real {tuple(xr.shape)}, probe {tuple(probe.images.shape)}")
 
 
@@ -73,10 +77,19 @@ def run(args) -> None:
 
     dev = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     z = np.load(args.data)
-    t = {k: torch.from_numpy(z[k].astype(np.float32)).to(dev) for k in ("MS", "XR", "YR", "PX", "PY", "PM")}
+    def dec(k: str) -> torch.Tensor:  # uint8 packs: network space [-1, 1] in 255 steps, masks [0, 1]
+        a = z[k]
+        if a.dtype == np.uint8:
+            a = a.astype(np.float32) / 255.0 if k == "PM" else a.astype(np.float32) / 127.5 - 1.0
+        return torch.from_numpy(a.astype(np.float32)).to(dev)
+
+    t = {k: dec(k) for k in ("MS", "XR", "YR", "PX", "PY", "PM")}
     h, w = t["MS"].shape[2:]
     sets = [f"data.height={h}", f"data.width={w}", f"data.batch_size={args.batch}", f"run.seed={args.seed}",
-            f"optim.max_steps={args.steps}", f"optim.decay_start={int(args.steps * args.decay)}", *args.set]
+            f"optim.max_steps={args.steps}"]
+    if args.decay > 0:  # MUNIT keeps its own step policy (as in `reproduce`): --decay 0
+        sets.append(f"optim.decay_start={int(args.steps * args.decay)}")
+    sets += args.set
     cfg = load_config(args.config, sets)
     torch.manual_seed(args.seed)
     model = build_model(cfg).to(dev)
@@ -119,13 +132,17 @@ def run(args) -> None:
     if args.save:
         from safetensors.torch import save_file
 
-        save_file({k: v.contiguous().cpu() for k, v in model.state_dict().items()}, args.save)
+        dtype = torch.float16 if args.half else None  # half the bytes: enough to render pictures from
+        save_file({k: (v.to(dtype) if dtype and v.is_floating_point() else v).contiguous().cpu()
+                   for k, v in model.state_dict().items()}, args.save)
 
 
 def grid(args) -> None:
     variants = tomllib.loads(Path(args.variants).read_text())
     names = args.only or list(variants)
     Path(args.out).mkdir(parents=True, exist_ok=True)
+    if args.save_dir:
+        Path(args.save_dir).mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     procs = []
     for name in names:
@@ -133,9 +150,11 @@ def grid(args) -> None:
         for seed in args.seeds:
             cmd = [sys.executable, __file__, "run", "--data", args.data, "--name", name, "--seed", str(seed),
                    "--steps", str(args.steps), "--every", str(args.every), "--config", v.get("config", "cpu-small"),
-                   "--device", args.device, "--batch", str(args.batch),
+                   "--device", args.device, "--batch", str(args.batch), "--decay", str(v.get("decay", args.decay)),
                    *(["--minutes", str(args.minutes)] if args.minutes else []),
                    "--out", str(Path(args.out) / f"{name}_s{seed}.jsonl")]
+            if args.save_dir:
+                cmd += ["--save", str(Path(args.save_dir) / f"{name}_s{seed}.safetensors"), "--half"]
             cmd += [a for s in v.get("set", []) for a in ("--set", s)]
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
     bad = 0
@@ -157,6 +176,7 @@ def main() -> None:
     p.add_argument("--n-intrinsics", type=int, default=None)
     p.add_argument("--n-real", type=int, default=None)
     p.add_argument("--n-probe", type=int, default=48)
+    p.add_argument("--dtype", choices=("float16", "uint8"), default="float16")
     p.add_argument("--out", required=True)
     r = sub.add_parser("run")
     r.add_argument("--data", required=True)
@@ -173,6 +193,7 @@ def main() -> None:
     r.add_argument("--minutes", type=float, default=None, help="stop (with a last probe row) after this long")
     r.add_argument("--out", default=None)
     r.add_argument("--save", default=None)
+    r.add_argument("--half", action="store_true", help="save the weights as float16")
     g = sub.add_parser("grid")
     g.add_argument("--data", required=True)
     g.add_argument("--variants", required=True)
@@ -181,9 +202,11 @@ def main() -> None:
     g.add_argument("--steps", type=int, default=3000)
     g.add_argument("--every", type=int, default=250)
     g.add_argument("--batch", type=int, default=4)
+    g.add_argument("--decay", type=float, default=0.5, help="decay_start as a fraction of --steps (a variant's `decay` wins)")
     g.add_argument("--device", default="auto")
     g.add_argument("--minutes", type=float, default=None)
     g.add_argument("--out", required=True)
+    g.add_argument("--save-dir", default=None, help="save every run's final weights (float16) here")
     a = ap.parse_args()
     {"pack": pack, "run": run, "grid": grid}[a.cmd](a)
 

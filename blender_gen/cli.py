@@ -62,14 +62,16 @@ def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
         if not token:
             continue
         if Path(token).suffix.lower() in MODEL_SUFFIXES or "/" in token:
-            p = Path(token)
-            if not p.is_file():
-                _fail(f"--cars {token}: no such model file")
-            if p.suffix.lower() not in MODEL_SUFFIXES:
-                _fail(f"--cars {token}: unsupported model format; expected one of {MODEL_SUFFIXES}")
+            files = [Path(f) for f in token.split("+")]  # one car in several files: BODY+WHEELS
+            for p in files:
+                if not p.is_file():
+                    _fail(f"--cars {token}: no such model file {p}")
+                if p.suffix.lower() not in MODEL_SUFFIXES:
+                    _fail(f"--cars {token}: unsupported model format {p.suffix!r}; expected one of {MODEL_SUFFIXES}")
             if rules is None:
-                _fail(f"--cars {token}: a model file needs --car-rules FILE to map its objects to parts")
-            out.append(str(p.resolve()))
+                _fail(f"--cars {token}: a model file needs --car-rules FILE (or --car-rules auto) to map its "
+                      "objects to parts")
+            out.append("+".join(str(p.resolve()) for p in files))
         else:
             names.append(token)
             out.append(token)
@@ -81,6 +83,10 @@ def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
     if not out:
         _fail("--cars: no car given")
     return tuple(out)
+
+
+def _rules_arg(rules: str | None) -> str | None:
+    return None if rules is None else "auto" if rules == "auto" else str(Path(rules).resolve())
 
 
 def _common_options(fn):
@@ -97,7 +103,8 @@ def _common_options(fn):
                           "seeded car for every block of views, never like a held-out model) or model files "
                           "with --car-rules."),
         click.option("--car-rules", type=click.Path(dir_okay=False), default=None,
-                     help="TOML rules mapping a model file's objects/materials/palette regions to parts."),
+                     help="TOML rules mapping a model file's objects/materials/palette regions to parts, or "
+                          "'auto' (parts inferred per model: see `iae-gen label-parts`)."),
         click.option("--envmap", "envmaps", multiple=True,
                      help="Equirectangular .hdr/.exr (repeatable), or the built-in skies: procedural (= "
                           "procedural:train, 8 skies) or procedural:heldout (4 others). Default: intrinsics "
@@ -141,8 +148,8 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
     except ValueError as exc:
         _fail(str(exc))
     rules = o["car_rules"]
-    if rules is not None and not Path(rules).is_file():
-        _fail(f"--car-rules {rules}: no such file")
+    if rules is not None and rules != "auto" and not Path(rules).is_file():
+        _fail(f"--car-rules {rules}: no such file (or 'auto')")
     cars = check_cars(o["cars"] or (default_cars,), rules)
     if rules is not None:
         from .cars.rules import RulesError, load_rules
@@ -153,7 +160,7 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
             _fail(str(exc))
     envmaps = tuple(check_envmap(e) for e in o["envmaps"]) or (default_env,)
     return Recipe(kind=kind, seed=o["seed"], width=w, height=h, cars=cars,
-                  car_rules=str(Path(rules).resolve()) if rules else None, envmaps=envmaps, samples=samples,
+                  car_rules=_rules_arg(rules), envmaps=envmaps, samples=samples,
                   camera=ranges, views_per_car=o["views_per_car"], background=o.get("background", "black"))
 
 
@@ -282,13 +289,90 @@ def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: i
     """
     from .contact_sheet import contact_sheet
 
-    if car_rules is not None and not Path(car_rules).is_file():
-        _fail(f"--car-rules {car_rules}: no such file")
+    if car_rules is not None and car_rules != "auto" and not Path(car_rules).is_file():
+        _fail(f"--car-rules {car_rules}: no such file (or 'auto')")
     chosen = check_cars(cars or ("procedural",), car_rules)
     with one_line_errors():
-        path = contact_sheet(out, chosen, str(Path(car_rules).resolve()) if car_rules else None, columns=columns,
+        path = contact_sheet(out, chosen, _rules_arg(car_rules), columns=columns,
                              count=count, seed=seed, progress=not quiet)
     click.echo(str(path))
+
+
+@main.command("label-parts")
+@click.argument("models", nargs=-1, required=True)
+@click.option("--out", required=True, type=click.Path(path_type=Path),
+              help="RULES.toml for one model; a folder (NAME.toml each) for several.")
+@click.option("--preview", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Part-colour PNG (side, front, top) for one model; with several, NAME.png in --out.")
+@click.option("--length", default=4.5, show_default=True, type=click.FloatRange(0.5, 30),
+              help="Bumper-to-bumper length in metres written to the rules.")
+@click.option("--forward", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
+              help="The model's front axis after import (default: inferred from its lamps or profile).")
+@click.option("--up", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
+              help="The model's up axis after import (default: inferred: the axis roof and hood face).")
+@click.option("--force", is_flag=True, help="Overwrite existing rules/preview files.")
+def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length: float, forward: str | None,
+                up: str | None, force: bool) -> None:
+    """Propose a rules file for car models that have none (glass, wheels, lights, ... inferred).
+
+    MODEL is a .glb/.gltf/.obj/.blend file, or several joined by '+' (a body and its wheels). Prints
+    per part its faces, area and the evidence that decided it, and what could not be found; the
+    proposed rules are re-applied and their agreement with the inference printed.
+    `--car-rules auto` on the other commands uses the same inference on the fly.
+    """
+    from .cars.labeller import preview as draw_preview
+    from .cars.rules import RulesError, load_rules
+
+    tokens = check_cars(models, "auto")
+    several = len(tokens) > 1
+    if several and out.suffix:
+        _fail(f"--out {out}: several models need a folder for their rules files (NAME.toml each)")
+    if several and preview is not None:
+        _fail("--preview: one PNG for one model; with several, NAME.png is written beside each NAME.toml")
+    if (forward is None) != (up is None):
+        _fail("--forward and --up: give both or neither")
+    targets = []
+    for token in tokens:
+        name = Path(token.split("+")[0]).stem
+        rules_path = out / f"{name}.toml" if several else out
+        png = out / f"{name}.png" if several else preview
+        for path in (rules_path, png):
+            if path is not None and path.exists() and not force:
+                _fail(f"{path}: exists; pass --force to overwrite")
+        targets.append((token, name, rules_path, png))
+    from .cars.importer import model_files
+    from .cars.rules import rule_labels
+    from .cars.faces import read_faces, remove_objects
+    from .cars.labeller import agreement, infer, propose_rules
+    from .dataset import atomic_target
+
+    for token, name, rules_path, png in targets:
+        with one_line_errors():
+            table, objects = read_faces(model_files(token))
+            remove_objects(objects)
+        lab = infer(table, forward=forward, up=up)
+        areas = table.areas()
+        text = propose_rules(table, lab, Path(token.split("+")[0]).name, length=length)
+        rules_path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_target(rules_path) as tmp:
+            Path(tmp).write_text(text, encoding="utf-8")
+        try:
+            again, _ = rule_labels(table, load_rules(rules_path), "body")
+        except RulesError as exc:
+            _fail(f"{rules_path}: the proposed rules do not load ({exc}); please report this model")
+        click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category} -> {rules_path}")
+        for part, faces, share, why in lab.summary(areas):
+            ev = ", ".join(f"{k} {v}" for k, v in sorted(why.items(), key=lambda kv: -kv[1]))
+            click.echo(f"  {part:16s} {faces:6d} faces {100 * share:5.1f}% of area   ({ev})")
+        for w in lab.warnings:
+            click.echo(f"  warning: {w}")
+        click.echo(f"  the proposed rules give the inferred part to {100 * agreement(again, lab.labels, areas):.1f}% "
+                   "of the area")
+        if png is not None:
+            png.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_target(png) as tmp:
+                draw_preview(table, lab.labels, lab.forward, lab.up, tmp, title=f"{name}: inferred parts")
+            click.echo(f"  preview: {png}")
 
 
 @main.command("inspect")

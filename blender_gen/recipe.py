@@ -44,8 +44,14 @@ class Recipe:
         """The fields that define the samples; files are named by content, not by path."""
         d = asdict(self)
         d["envmaps"] = [_file_identity(e) if e not in PROCEDURAL_SETS else e for e in self.envmaps]
-        d["cars"] = [_file_identity(c) if Path(c).suffix else c for c in self.cars]
-        d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
+        d["cars"] = [[_file_identity(f) for f in c.split("+")] if "+" in c else _file_identity(c)
+                     if Path(c).suffix else c for c in self.cars]
+        if self.car_rules == "auto":  # inferred parts: the labeller's version is the rules' identity
+            from .cars.labeller import LABELLER_VERSION
+
+            d["car_rules"] = {"auto": LABELLER_VERSION}
+        else:
+            d["car_rules"] = _file_identity(self.car_rules) if self.car_rules else None
         if any(not Path(c).suffix for c in self.cars):  # procedural cars: which catalogue and sampler
             from .cars import catalogue_digest
 

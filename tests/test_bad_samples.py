@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from blender_gen.dataset import read_exr, sha256_file, write_exr
 
@@ -24,10 +25,19 @@ def _fit(run, intr, photos, steps="2"):
                   str(photos), "--max-steps", steps, "--quiet", "--set", "data.cache_gb=0", *TINY)
 
 
-def test_a_sample_replaced_by_another_valid_exr_is_refused(tmp_path):
-    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
-    run = tmp_path / "run"
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """One tiny run and its clean data, shared: each test corrupts a copy of the data."""
+    base = tmp_path_factory.mktemp("bad_samples")
+    intr, photos = tiny_intrinsics(base / "intr"), tiny_photos(base / "photos", n=6)
+    run = base / "run"
     assert _fit(run, intr, photos).returncode == 0
+    return run, intr, photos
+
+
+def test_a_sample_replaced_by_another_valid_exr_is_refused(tmp_path, trained):
+    run, clean, photos = trained
+    intr = shutil.copytree(clean, tmp_path / "intr")
     shutil.copy(intr / "samples" / "000001.exr", intr / "samples" / "000000.exr")
     bad = _fit(tmp_path / "run2", intr, photos)
     assert bad.returncode == 1 and "Traceback" not in bad.stderr
@@ -36,10 +46,9 @@ def test_a_sample_replaced_by_another_valid_exr_is_refused(tmp_path):
     assert render.returncode == 1 and "000000.exr: checksum mismatch" in render.stderr
 
 
-def test_nan_in_a_sample_names_the_sample(tmp_path):
-    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
-    run = tmp_path / "run"
-    assert _fit(run, intr, photos).returncode == 0
+def test_nan_in_a_sample_names_the_sample(tmp_path, trained):
+    run, clean, photos = trained
+    intr = shutil.copytree(clean, tmp_path / "intr")
     path = intr / "samples" / "000002.exr"
     layers = read_exr(path)
     layers["normal"][5, 5] = np.nan
@@ -56,13 +65,12 @@ def test_nan_in_a_sample_names_the_sample(tmp_path):
     assert render.returncode == 1 and "000002.exr: layer 'normal' holds NaN" in render.stderr
 
 
-def test_decompose_of_a_bomb_image_leaves_no_half_written_out(tmp_path):
+def test_decompose_of_a_bomb_image_leaves_no_half_written_out(tmp_path, trained):
     """Issue 19.10: a decompression-bomb photo mid-way was a traceback and left a partial --out."""
     from PIL import Image
 
-    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos", n=6)
-    run = tmp_path / "run"
-    assert _fit(run, intr, photos).returncode == 0
+    run, _, clean = trained
+    photos = shutil.copytree(clean, tmp_path / "photos")
     big = Image.new("1", (14000, 14000))  # 196 MP: over twice Pillow's limit, a bomb
     big.save(photos / "zz_bomb.png", optimize=False, compress_level=1)
     out = tmp_path / "pred"

@@ -230,15 +230,15 @@ def test_report_refuses_the_training_intrinsics_as_fid_set(report, tmp_path):
     assert not_a_run.returncode == 1 and "not a run folder" in not_a_run.stderr and "Traceback" not in not_a_run.stderr
 
 
-def test_report_recomputes_predictions_after_more_training_or_other_data(tmp_path):
+def test_report_recomputes_predictions_after_more_training_other_data_or_retraining_in_place(tmp_path):
     intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
     pbr_a = tiny_intrinsics(tmp_path / "pbr_a", n=2, seed=5, kind="pbr")
     pbr_b = tiny_intrinsics(tmp_path / "pbr_b", n=3, seed=6, kind="pbr")
     unseen = tiny_intrinsics(tmp_path / "unseen", n=2, seed=9)
     run = tmp_path / "run"
     fit = [sys.executable, "-m", "train.cli", "fit", "--run-dir", str(run), "--quiet"]
-    subprocess.run(fit + ["--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--max-steps", "3",
-                          *TINY], cwd=ROOT, check=True, capture_output=True)
+    first_fit = ["--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), *TINY]
+    subprocess.run(fit + first_fit + ["--max-steps", "3"], cwd=ROOT, check=True, capture_output=True)
     out = tmp_path / "out"
     args = ["--real", str(photos), "--intrinsics", str(unseen), "--out", str(out), "--quiet"]
     _cli("report", str(run), "--data", str(pbr_a), *args)
@@ -252,29 +252,19 @@ def test_report_recomputes_predictions_after_more_training_or_other_data(tmp_pat
     _cli("report", str(run), "--data", str(pbr_b), *args)
     third = json.loads((out / "results.json").read_text())["runs"][0]
     assert third["dec"]["samples"] == 3 and third["dec"]["data"] == str(pbr_b.resolve())
-
-
-def test_a_run_retrained_in_place_to_the_same_step_gets_new_predictions(tmp_path):
-    """Issue 19.1: the cache is keyed by the checkpoint's content and the config, not path and step."""
-    intr, photos = tiny_intrinsics(tmp_path / "intr"), tiny_photos(tmp_path / "photos")
-    pbr = tiny_intrinsics(tmp_path / "pbr", n=2, seed=5, kind="pbr")
-    unseen = tiny_intrinsics(tmp_path / "unseen", n=2, seed=9)
-    run = tmp_path / "run"
-    out = tmp_path / "out"
-    args = ["--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen), "--out", str(out), "--quiet"]
-    keys, decs = [], []
-    for seed in (1, 2):
-        shutil.rmtree(run, ignore_errors=True)
-        subprocess.run([sys.executable, "-m", "train.cli", "fit", "--run-dir", str(run), "--quiet", "--config",
-                        "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--max-steps", "3",
-                        "--set", f"run.seed={seed}", *TINY], cwd=ROOT, check=True, capture_output=True)
-        _cli("report", str(run), *args)
-        keys.append(json.loads((out / "runs" / "00_run" / "predictions" / "dataset.json").read_text())["cache_key"])
-        decs.append(json.loads((out / "results.json").read_text())["runs"][0]["dec"])
-    assert keys[0]["step"] == keys[1]["step"] == 3
-    assert keys[0]["checkpoint_sha256"] != keys[1]["checkpoint_sha256"]
-    assert keys[0]["config"]["run"]["seed"] == 1 and keys[1]["config"]["run"]["seed"] == 2
-    assert decs[0] != decs[1], "the report scores the retrained model, not the cached predictions of the old one"
+    # issue 19.1: retrained in place to the same step with another seed -> the cache is keyed by the
+    # checkpoint's content and the config, not by path and step
+    key_before = json.loads((preds / "dataset.json").read_text())["cache_key"]
+    shutil.rmtree(run)
+    subprocess.run(fit + first_fit + ["--max-steps", "6", "--set", "run.seed=2"], cwd=ROOT, check=True,
+                   capture_output=True)
+    _cli("report", str(run), "--data", str(pbr_b), *args)
+    key_after = json.loads((preds / "dataset.json").read_text())["cache_key"]
+    fourth = json.loads((out / "results.json").read_text())["runs"][0]
+    assert key_before["step"] == key_after["step"] == 6
+    assert key_before["checkpoint_sha256"] != key_after["checkpoint_sha256"]
+    assert key_after["config"]["run"]["seed"] == 2 != key_before["config"]["run"]["seed"]
+    assert fourth["dec"] != third["dec"], "the report scores the retrained model, not the cached predictions of the old one"
 
 
 def test_predictions_of_another_set_are_refused_and_shortfalls_exit_nonzero(tmp_path):

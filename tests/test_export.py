@@ -161,12 +161,18 @@ def test_edited_metadata_is_a_one_line_error(runs, tmp_path):
         "nonet.onnx": (lambda m: m.pop("net"), "'net'"),
         "swapped.onnx": (lambda m: m.update(net="H"), "metadata"),
     }
-    for name, (change, message) in cases.items():
-        proc = _run("check-export", str(edited(name, change)), "--run", str(runs[0]), check=False)
-        assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr, (name, proc.stderr)
+    from train.export import ExportError, check_export, export_network
+
+    for k, (name, (change, message)) in enumerate(cases.items()):
+        path = edited(name, change)
+        if k == 0:  # the command: one line, exit 1
+            proc = _run("check-export", str(path), "--run", str(runs[0]), check=False)
+            assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr, (name, proc.stderr)
+        with pytest.raises(ExportError, match=message):  # the rest in-process: the same error, no subprocess each
+            check_export(path, runs[0])
     ts = tmp_path / "R.pt"
-    _run("export", "--run", str(runs[0]), "--net", "R", "--format", "torchscript", "--out", str(ts), "--no-check")
+    export_network(runs[0], "R", "torchscript", ts)
     module = torch.jit.load(str(ts))
     torch.jit.save(module, str(tmp_path / "list.pt"), _extra_files={EXTRA_FILE: json.dumps([1, 2])})
-    proc = _run("check-export", str(tmp_path / "list.pt"), "--run", str(runs[0]), check=False)
-    assert proc.returncode == 1 and "without this project's export metadata" in proc.stderr and "Traceback" not in proc.stderr
+    with pytest.raises(ExportError, match="without this project's export metadata"):
+        check_export(tmp_path / "list.pt", runs[0])

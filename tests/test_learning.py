@@ -123,7 +123,7 @@ def test_normal_length_on_the_car_never_touches_the_background():
 
 def test_gan_terms_averaged_over_scales_and_fakes():
     torch.manual_seed(0)
-    sets = tiny_overrides() + ["loss.w_adv_m=1"]
+    sets = tiny_overrides() + ["loss.w_adv_m=1", "loss.w_adv_rec=1"]  # the paper's shared terms
     out_sum = build_model(load_config("cpu-small", sets + ["loss.gan_reduce=sum"]))
     torch.manual_seed(0)
     out_mean = build_model(load_config("cpu-small", sets + ["loss.gan_reduce=mean"]))
@@ -135,6 +135,20 @@ def test_gan_terms_averaged_over_scales_and_fakes():
         if k.startswith("G/adv_"):
             assert float(t_mean[k][1].detach()) == pytest.approx(float(t_sum[k][1].detach()) / scales, rel=1e-5)
             assert t_mean[k][0] == pytest.approx(t_sum[k][0] / 2)  # two fakes per shared discriminator
+
+
+def test_reconstructions_train_the_discriminators_but_not_the_generators_by_default():
+    m, i = torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.w_adv_m=1"]))
+    out = model.forward_all(m, i)
+    w = {k: wt for k, (wt, _) in model.loss_terms(out).items() if k.startswith("G/adv_")}
+    # the direct translations weigh as without sharing (a weighted mean), the reconstructions 0
+    assert w == {"G/adv_D_I_fake_I": 1.0, "G/adv_D_I_rec_I": 0.0, "G/adv_D_M_fake_M": 1.0, "G/adv_D_M_rec_M": 0.0}
+    assert model.discriminator_inputs(out)["D_M"][1] == ["fake_M", "rec_M"]  # D still learns from both
+    # with one cycle off, a discriminator's only fake (a reconstruction) keeps its full weight
+    no_dec = build_model(load_config("cpu-small", tiny_overrides() + ["loss.w_adv_m=1", "loss.decomposition_cycle=false"]))
+    w = {k: wt for k, (wt, _) in no_dec.loss_terms(no_dec.forward_all(m, i)).items() if k.startswith("G/adv_")}
+    assert w == {"G/adv_D_I_fake_I": 1.0, "G/adv_D_M_rec_M": 1.0}
 
 
 def test_generator_loss_is_the_weighted_sum_of_its_terms():

@@ -78,12 +78,12 @@ def test_reproduce_refuses_a_run_named_twice():
 
 
 @pytest.mark.blender
-@pytest.mark.parametrize("bad", [["--radius", "0.5"], ["--radius", "nan"], ["--radius", "inf"], ["--height", "nan"]])
-def test_a_refused_turntable_leaves_its_folder_for_the_corrected_command(tmp_path, bad):
+def test_a_refused_turntable_leaves_its_folder_for_the_corrected_command(tmp_path):
     out = tmp_path / "tt"
     args = ["turntable", "--out", str(out), "--car", "sedan_a", "--frames", "3", "--resolution", "64x32", "--quiet"]
-    proc = run_gen(*args, *bad, check=False)
-    assert proc.returncode != 0 and "Traceback" not in proc.stderr
-    assert not (out / "dataset.json").exists()
+    for bad in (["--radius", "0.5"], ["--radius", "nan"], ["--radius", "inf"], ["--height", "nan"]):
+        proc = run_gen(*args, *bad, check=False)
+        assert proc.returncode != 0 and "Traceback" not in proc.stderr, bad
+        assert not (out / "dataset.json").exists(), bad
     run_gen(*args)
     assert (out / "dataset.json").exists()

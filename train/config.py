@@ -83,6 +83,12 @@ class LossConfig:
     # each discriminator weighs as one term of Eq. 7 however many scales and fakes it judges
     gan_reduce: str = "mean"
     w_adv_m: float = 0.1  # D_M's generator terms weigh w_adv * w_adv_m (D_M does not see the image)
+    # Not in the paper: with a shared discriminator, the generator terms of the cycle
+    # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
+    # translations (a weighted mean with gan_reduce "mean"); the discriminators still learn
+    # from both. 1 = the paper; 0 (measured, README "The cpu comparison on a GPU"): the GAN
+    # gradient through the reconstructions fought the cycles and cost ~8 degrees of normals.
+    w_adv_rec: float = 0.0
 
 
 @dataclass
@@ -294,7 +300,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.normal_threshold", "loss.cycle_noise",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):

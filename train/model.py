@@ -142,10 +142,18 @@ class IntrinsicAutoencoder(nn.Module):
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))
             chunks = [torch.chunk(l, len(fakes)) for l in logits]
-            weight = lc.w_adv * (lc.w_adv_m if dname == "D_M" else 1.0) / (len(fakes) if mean else 1)
+            rel = self._adv_weights(fakes)
+            norm = sum(rel) if mean else 1.0
             for k, f in enumerate(fakes):
-                terms[f"G/adv_{dname}_{f}"] = (weight, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
+                w = lc.w_adv * (lc.w_adv_m if dname == "D_M" else 1.0) * rel[k] / norm
+                terms[f"G/adv_{dname}_{f}"] = (w, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
         return terms
+
+    def _adv_weights(self, fakes: list[str]) -> list[float]:
+        """Relative generator weights of one discriminator's fakes: the cycle reconstructions at
+        loss.w_adv_rec beside a direct translation; alone (one cycle off) they keep weight 1."""
+        direct = any(not f.startswith("rec_") for f in fakes)
+        return [self.loss_cfg.w_adv_rec if direct and f.startswith("rec_") else 1.0 for f in fakes]
 
     def generator_loss(self, out: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         terms = self.loss_terms(out)

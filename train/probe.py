@@ -116,7 +116,8 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
     model.eval()
     try:
         preds, renders = [], []
-        gen = torch.Generator(device=probe.images.device).manual_seed(0)  # fixed style codes (MUNIT)
+        # fixed style codes (MUNIT draws them on the CPU and moves them: a CUDA generator fails there)
+        gen = torch.Generator(device="cpu").manual_seed(0)
         for i in range(0, len(probe.images), batch):
             preds.append(model.decompose(probe.images[i:i + batch]).float())
             renders.append(model.render(probe.maps[i:i + batch], generator=gen).float())

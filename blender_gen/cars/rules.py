@@ -32,8 +32,11 @@ from __future__ import annotations
 import fnmatch
 import re
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from .spec import CATEGORIES, PARTS
 
@@ -76,6 +79,7 @@ class Rules:
     model: ModelSettings
     files: dict[str, ModelSettings] = field(default_factory=dict)
     rules: list[Rule] = field(default_factory=list)
+    auto: bool = False  # `--car-rules auto`: parts inferred per model by `labeller.infer`
 
     def settings_for(self, model_path: str | Path) -> ModelSettings:
         return self.files.get(Path(model_path).name, self.model)
@@ -93,7 +97,9 @@ class ImportedSpec:
 
 
 def imported_specs(files: list[str], rules: Rules) -> list[ImportedSpec]:
-    return [ImportedSpec(Path(f).stem, rules.settings_for(f).category, str(f)) for f in files]
+    """Specs of model files ('+' joins a car's several files: a body and its wheels)."""
+    first = [Path(str(f).split("+")[0]) for f in files]
+    return [ImportedSpec(p.stem, rules.settings_for(p).category, str(f)) for p, f in zip(first, files)]
 
 
 def base_name(name: str) -> str:
@@ -134,7 +140,12 @@ def _settings(data: dict, base: ModelSettings, where: str) -> ModelSettings:
     return s
 
 
+AUTO = "auto"
+
+
 def load_rules(path: str | Path) -> Rules:
+    if str(path) == AUTO:
+        return Rules(Path(AUTO), ModelSettings(), auto=True)
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -202,3 +213,21 @@ def face_part(rules: Rules, obj: str, material: str | None, uv, colour) -> Rule 
             if ok:
                 return rule
     return None
+
+
+def rule_labels(table, rules: Rules, default_part: str) -> tuple[np.ndarray, Counter]:
+    """The part of every face by the rules' first match (default part where none matches), and
+    how many faces each rule took (index 0: unmatched)."""
+    labels = np.empty(len(table), dtype=object)
+    hits: Counter = Counter()
+    cache: dict[tuple, object] = {}
+    for t in range(len(table)):
+        uv = None if not np.isfinite(table.uv[t, 0]) else (float(table.uv[t, 0]), float(table.uv[t, 1]))
+        colour = tuple(float(x) for x in table.colour[t]) if table.textured[t] else None
+        key = (table.objects[t], table.materials[t], uv, colour)
+        if key not in cache:
+            cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour)
+        rule = cache[key]
+        hits[rule.index if rule else 0] += 1
+        labels[t] = rule.part if rule else default_part
+    return labels, hits

@@ -1,0 +1,68 @@
+"""Automatic part labelling against hand-written rules (issue 18, part 4).
+
+For each of the 7 Kenney models in ../shared/assets/cars3d/ the faces are labelled twice: by the
+hand-written `data_manifests/kenney_car_kit_rules.toml` and by `labeller.infer` (no rules). The
+figure is the area-weighted share of faces given the same part (windows and bumpers compared
+before their split into windshield/side/rear and front/rear, which is the same geometry rule for
+both). Also printed: the inferred up/forward axes against the rules', and the parts confused most.
+
+  python bench/bench_labeller.py [--assets ../shared/assets]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+MERGE = {"windshield": "windows", "window_side": "windows", "window_rear": "windows",
+         "bumper_front": "bumpers", "bumper_rear": "bumpers"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--assets", type=Path, default=ROOT.parent / "shared" / "assets")
+    ap.add_argument("--goal", type=float, default=0.85)
+    a = ap.parse_args()
+    import numpy as np
+
+    from blender_gen.cars.faces import read_faces, remove_objects
+    from blender_gen.cars.labeller import agreement, infer
+    from blender_gen.cars.rules import load_rules, rule_labels
+
+    folder = a.assets / "cars3d"
+    models = sorted(folder.glob("*.glb"))
+    if not models:
+        sys.exit(f"{folder}: no .glb models (the Kenney Car Kit of ../shared/assets)")
+    rules = load_rules(ROOT / "data_manifests" / "kenney_car_kit_rules.toml")
+    print(f"{'model':10s} {'faces':>6s} {'agree':>6s}  up/forward (rules)      most confused (hand -> auto, % of area)   s")
+    scores = []
+    for path in models:
+        t0 = time.time()
+        table, objects = read_faces([path])
+        remove_objects(objects)
+        settings = rules.settings_for(path)
+        hand, _ = rule_labels(table, rules, settings.default_part)
+        lab = infer(table)
+        merge = np.vectorize(lambda p: MERGE.get(p, p), otypes=[object])
+        h, auto = merge(hand), merge(lab.labels)
+        areas = table.areas()
+        score = agreement(h, auto, areas)
+        scores.append(score)
+        wrong = Counter()
+        for x, y, w in zip(h, auto, areas):
+            if x != y:
+                wrong[f"{x}->{y}"] += w / areas.sum()
+        worst = ", ".join(f"{k} {100 * v:.1f}" for k, v in wrong.most_common(3))
+        axes = f"{lab.up}/{lab.forward} ({settings.up}/{settings.forward})"
+        print(f"{path.stem:10s} {len(table):6d} {100 * score:5.1f}%  {axes:22s}  {worst:42s} {time.time() - t0:.1f}")
+    print(f"mean {100 * sum(scores) / len(scores):.1f}%, lowest {100 * min(scores):.1f}%; goal: at least "
+          f"{100 * a.goal:.0f}% per model -> {'met' if min(scores) >= a.goal else 'NOT met'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,210 @@
+"""Read a car model's faces into plain arrays (bpy): geometry plus the evidence parts are told by.
+
+One row per triangle: its corners and corner normals (model space, after the importer's own
+axis conversion), the object and material it belongs to, the material's transparency,
+transmission and emission, its base colour, the UV centroid and the texture colour under it.
+The rules (`rules.py`) and the automatic labeller (`labeller.py`) both work on this table,
+so a rules file and `--car-rules auto` see exactly the same faces.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..cli_errors import first_line
+from ..quiet import quiet_stdout
+from .labeller import FaceTable
+from .rules import MODEL_SUFFIXES, RulesError, base_name
+
+BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
+
+
+def read_objects(path: Path) -> list[bpy.types.Object]:
+    before = set(bpy.data.objects)
+    suffix = path.suffix.lower()
+    bpy.context.preferences.filepaths.use_scripts_auto_execute = False
+    with quiet_stdout(python_too=True):  # the glTF importer logs every node
+        if suffix in (".glb", ".gltf"):
+            bpy.ops.import_scene.gltf(filepath=str(path))
+        elif suffix == ".obj":
+            bpy.ops.wm.obj_import(filepath=str(path))
+        elif suffix == ".blend":
+            with open(path, "rb") as fh:
+                magic = fh.read(7)
+            if not magic.startswith(BLEND_MAGICS):
+                raise RulesError(f"{path}: not a .blend file (no BLENDER header, nor a gzip/zstd-compressed one)")
+            # Appending data blocks never executes text blocks, drivers or handlers.
+            with bpy.data.libraries.load(str(path), link=False) as (src, dst):
+                dst.objects = list(src.objects)
+            coll = bpy.data.collections.new(f"import_{path.stem}")
+            bpy.context.scene.collection.children.link(coll)
+            for obj in dst.objects:
+                if obj is not None:
+                    coll.objects.link(obj)
+        else:
+            raise RulesError(f"{path}: unsupported model format; expected one of {MODEL_SUFFIXES}")
+    return [o for o in bpy.data.objects if o not in before]
+
+
+def remove_objects(objects: list[bpy.types.Object]) -> None:
+    data = {o.data for o in objects if o.data is not None}
+    for o in objects:
+        bpy.data.objects.remove(o, do_unlink=True)
+    for d in data:
+        if isinstance(d, bpy.types.Mesh) and d.users == 0:
+            bpy.data.meshes.remove(d)
+    for coll in [c for c in bpy.data.collections if c.name.startswith("import_") and not c.objects]:
+        bpy.data.collections.remove(coll)
+
+
+def _find_texture(img, model: Path):
+    """The image itself, or, where the importer could not find its file, the first file of that
+    name in the model's folder tree: model libraries keep textures beside the meshes folder
+    (Gazebo: materials/textures/)."""
+    if img.packed_file is not None or img.source != "FILE" or img.size[0] > 0:
+        return img
+    name = Path(bpy.path.abspath(img.filepath)).name
+    for folder in (model.parent, model.parent.parent):
+        hits = sorted(p for p in folder.rglob(name) if p.is_file())
+        if hits:
+            return bpy.data.images.load(str(hits[0]), check_existing=True)
+    return img
+
+
+def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def _material_info(mat, model: Path) -> dict:
+    """Base colour (sRGB), texture pixels, alpha, transmission and emission of a material."""
+    info = {"name": base_name(mat.name) if mat else "", "image": None, "base": np.full(3, np.nan),
+            "alpha": 1.0, "transmission": 0.0, "emission": 0.0}
+    if mat is None:
+        return info
+    info["alpha"] = float(getattr(mat, "alpha", 1.0)) if not mat.use_nodes else 1.0
+    if mat.node_tree is None:
+        info["base"] = _linear_to_srgb(np.array(mat.diffuse_color[:3], dtype=np.float64))
+        return info
+    for node in mat.node_tree.nodes:
+        if node.type != "BSDF_PRINCIPLED":
+            continue
+        inp = node.inputs
+        info["base"] = _linear_to_srgb(np.array(inp["Base Color"].default_value[:3], dtype=np.float64))
+        # an alpha linked to a texture (OBJ importers wire every RGBA map so) says nothing by itself
+        info["alpha"] = float(inp["Alpha"].default_value) if not inp["Alpha"].is_linked else 1.0
+        if "Transmission Weight" in inp:
+            info["transmission"] = float(inp["Transmission Weight"].default_value)
+        if "Emission Strength" in inp and "Emission Color" in inp:
+            col = np.array(inp["Emission Color"].default_value[:3])
+            info["emission"] = float(inp["Emission Strength"].default_value) * float(col @ [0.2126, 0.7152, 0.0722])
+        if inp["Base Color"].is_linked:
+            src = inp["Base Color"].links[0].from_node
+            if src.type == "TEX_IMAGE" and src.image is not None:
+                img = _find_texture(src.image, model)
+                if img.size[0] > 0:
+                    w, h = img.size
+                    px = np.empty(w * h * img.channels, dtype=np.float32)
+                    img.pixels.foreach_get(px)
+                    info["image"] = px.reshape(h, w, img.channels)[..., :3]  # 8-bit images: as encoded (sRGB)
+        break
+    return info
+
+
+def read_faces(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object]]:
+    """Import every file (one car, possibly several files) and tabulate its triangles. Returns the
+    imported objects too; the caller removes them (`remove_objects`)."""
+    objects: list[bpy.types.Object] = []
+    rows: dict[str, list] = {k: [] for k in ("tris", "normals", "objects", "materials", "uv", "colour", "textured",
+                                             "alpha", "transmission", "emission")}
+    try:
+        for path in paths:
+            try:
+                new = read_objects(path)
+            except RuntimeError as exc:  # Blender's importers report a bad file as RuntimeError
+                raise RulesError(f"{path}: cannot be imported ({first_line(exc)})") from None
+            objects += new
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            for obj in (o for o in new if o.type == "MESH"):
+                _read_mesh(obj, depsgraph, path, rows)
+    except BaseException:
+        remove_objects(objects)
+        raise
+    if not rows["tris"]:
+        remove_objects(objects)
+        raise RulesError(f"{', '.join(map(str, paths))}: no mesh objects in the file")
+    cat = {k: np.concatenate(v) for k, v in rows.items()}
+    return FaceTable(**cat), objects
+
+
+def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
+    ev = obj.evaluated_get(depsgraph)
+    me = ev.to_mesh()
+    try:
+        me.calc_loop_triangles()
+        n_tri = len(me.loop_triangles)
+        if n_tri == 0:
+            return
+        mw = np.array(obj.matrix_world)
+        nm = np.linalg.inv(mw[:3, :3]).T
+        co = np.empty(len(me.vertices) * 3, np.float32)
+        me.vertices.foreach_get("co", co)
+        co = co.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
+        lnorm = np.empty(len(me.loops) * 3, np.float32)
+        me.corner_normals.foreach_get("vector", lnorm)
+        lnorm = lnorm.reshape(-1, 3) @ nm.T
+        tri_loops = np.empty(n_tri * 3, np.int32)
+        me.loop_triangles.foreach_get("loops", tri_loops)
+        tri_loops = tri_loops.reshape(-1, 3)
+        tri_verts = np.empty(n_tri * 3, np.int32)
+        me.loop_triangles.foreach_get("vertices", tri_verts)
+        tri_verts = tri_verts.reshape(-1, 3)
+        tri_poly = np.empty(n_tri, np.int32)
+        me.loop_triangles.foreach_get("polygon_index", tri_poly)
+        poly_mat = np.empty(len(me.polygons), np.int32)
+        me.polygons.foreach_get("material_index", poly_mat)
+        poly_start = np.empty(len(me.polygons), np.int32)
+        me.polygons.foreach_get("loop_start", poly_start)
+        poly_total = np.empty(len(me.polygons), np.int32)
+        me.polygons.foreach_get("loop_total", poly_total)
+        # the polygon's UV centroid (as the rules have always used), per triangle
+        uv = np.full((n_tri, 2), np.nan)
+        uv_layer = me.uv_layers.active
+        if uv_layer is not None:
+            uvs = np.empty(len(me.loops) * 2, np.float32)
+            uv_layer.data.foreach_get("uv", uvs)
+            uvs = uvs.reshape(-1, 2)
+            csum = np.concatenate([np.zeros((1, 2)), np.cumsum(uvs, axis=0, dtype=np.float64)])
+            p = tri_poly
+            uv = (csum[poly_start[p] + poly_total[p]] - csum[poly_start[p]]) / poly_total[p][:, None]
+        infos = [_material_info(m, path) for m in me.materials] or [_material_info(None, path)]
+        mi = np.minimum(poly_mat[tri_poly], len(infos) - 1)
+        colour = np.full((n_tri, 3), np.nan)
+        textured = np.zeros(n_tri, bool)
+        for k, info in enumerate(infos):
+            sel = mi == k
+            if not sel.any():
+                continue
+            colour[sel] = info["base"]
+            img = info["image"]
+            if img is not None:
+                ok = sel & np.isfinite(uv[:, 0])
+                h, w = img.shape[:2]
+                x = np.minimum(w - 1, ((uv[ok, 0] % 1.0) * w).astype(int))
+                y = np.minimum(h - 1, ((uv[ok, 1] % 1.0) * h).astype(int))
+                colour[ok] = img[y, x]
+                textured[ok] = True
+        rows["tris"].append(co[tri_verts])
+        rows["normals"].append(lnorm[tri_loops])
+        rows["objects"].append(np.full(n_tri, base_name(obj.name), dtype=object))
+        rows["materials"].append(np.array([infos[k]["name"] for k in mi], dtype=object))
+        rows["uv"].append(uv)
+        rows["colour"].append(colour)
+        rows["textured"].append(textured)
+        for key in ("alpha", "transmission", "emission"):
+            rows[key].append(np.array([infos[k][key] for k in mi], dtype=np.float64))
+    finally:
+        ev.to_mesh_clear()

@@ -1,0 +1,146 @@
+"""Automatic part labelling (issue 18.4): inference on a synthetic car, rules proposed from it,
+and the CLI on a real model when ../shared/assets is there."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blender_gen.cars.labeller import FaceTable, agreement, infer, infer_up, propose_rules
+from blender_gen.cars.rules import load_rules, rule_labels
+
+ROOT = Path(__file__).resolve().parent.parent
+ASSETS = ROOT.parent / "shared" / "assets"
+
+# palette: colour and the UV cell it sits in (a texture of distinct swatches, like Kenney's)
+PAINT, GLASS, RED, YELLOW, DARK, RIM = ((0.2, 0.3, 0.8), (0.1, 0.1)), ((0.85, 0.93, 1.0), (0.3, 0.1)), \
+    ((0.9, 0.15, 0.15), (0.5, 0.1)), ((1.0, 0.85, 0.2), (0.7, 0.1)), ((0.12, 0.12, 0.13), (0.1, 0.5)), \
+    ((0.75, 0.75, 0.78), (0.3, 0.5))
+
+
+def _box(lo, hi, colours) -> list[tuple[np.ndarray, tuple]]:
+    """12 outward-wound triangles of an axis-aligned box; `colours(axis, sign)` picks each side's swatch."""
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    tris = []
+    for axis in range(3):
+        for sign in (-1, 1):
+            u, v = [k for k in range(3) if k != axis]
+            if sign < 0:
+                u, v = v, u  # keep the winding outward
+            c = np.where(np.arange(3) == axis, hi if sign > 0 else lo, 0.0)
+            corners = []
+            for a, b in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = c.copy()
+                p[u] = (lo, hi)[a][u]
+                p[v] = (lo, hi)[b][v]
+                corners.append(p)
+            sw = colours(axis, sign)
+            tris += [(np.array([corners[0], corners[1], corners[2]]), sw), (np.array([corners[0], corners[2], corners[3]]), sw)]
+    return tris
+
+
+def synthetic_car(flip: bool = False) -> tuple[FaceTable, dict[str, np.ndarray]]:
+    """A car of boxes facing +X (or -X with `flip`): blue paint, a narrower cabin whose sides are
+    glass, four wheels named wheel_* (dark tread, light hub face), red lamps at the back and
+    yellow ones at the front. Returns the table and the true part of every face."""
+    faces: list[tuple[np.ndarray, tuple, str, str]] = []
+    add = lambda tris, obj, part_of: faces.extend((t, sw, obj, part_of(sw)) for t, sw in tris)  # noqa: E731
+    add(_box((-2, -0.9, 0.3), (2, 0.9, 1.0), lambda a, s: PAINT), "body", lambda sw: "body")
+    add(_box((-1, -0.7, 1.0), (1, 0.7, 1.5), lambda a, s: PAINT if a == 2 else GLASS), "body",
+        lambda sw: "body" if sw == PAINT else "windows")
+    for x in (-1.3, 1.3):
+        for y in (-0.8, 0.8):
+            add(_box((x - 0.3, y - 0.12, 0.0), (x + 0.3, y + 0.12, 0.6), lambda a, s, y=y: RIM if a == 1 and s * y > 0 else DARK),
+                f"wheel_{x}_{y}", lambda sw: "rims" if sw == RIM else "tyres")
+    for y in (-0.6, 0.6):
+        add(_box((-2.05, y - 0.15, 0.7), (-2.0, y + 0.15, 0.85), lambda a, s: RED), "body", lambda sw: "tail_lights")
+        add(_box((2.0, y - 0.15, 0.7), (2.05, y + 0.15, 0.85), lambda a, s: YELLOW), "body", lambda sw: "headlights")
+    tris = np.array([f[0] for f in faces])
+    if flip:
+        tris = tris * np.array([-1.0, -1.0, 1.0])  # turned 180 degrees about the vertical
+    n = len(tris)
+    fn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    table = FaceTable(tris=tris, normals=np.repeat(fn[:, None], 3, axis=1),
+                      objects=np.array([f[2] for f in faces], dtype=object), materials=np.full(n, "palette", dtype=object),
+                      uv=np.array([f[1][1] for f in faces], float) + 0.01, colour=np.array([f[1][0] for f in faces], float),
+                      textured=np.ones(n, bool), alpha=np.ones(n), transmission=np.zeros(n), emission=np.zeros(n))
+    return table, {"parts": np.array([f[3] for f in faces], dtype=object)}
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_infer_finds_orientation_glass_wheels_and_lamps(flip):
+    table, truth = synthetic_car(flip)
+    lab = infer(table)
+    assert (lab.up, lab.forward) == ("+Z", "-X" if flip else "+X")
+    areas = table.areas()
+    for part in ("windows", "tyres", "rims", "tail_lights", "headlights", "body"):
+        sel = truth["parts"] == part
+        assert agreement(lab.labels[sel], truth["parts"][sel], areas[sel]) > 0.95, part
+    assert set(lab.evidence[truth["parts"] == "tyres"]) == {"name"}
+    assert not lab.warnings
+
+
+def test_up_is_where_the_car_narrows_without_wheel_names():
+    table, _ = synthetic_car()
+    # rotate so that the car's up is -Y (an OBJ authored Z-up, read as Y-up)
+    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # new y = -z, new z = y
+    assert infer_up(table.tris @ rot.T, table.areas()) == "-Y"
+    assert infer_up(table.tris, table.areas()) == "+Z"
+
+
+def test_transparent_materials_are_glass_unless_they_are_the_whole_body():
+    table, truth = synthetic_car()
+    glass = truth["parts"] == "windows"
+    table.materials = np.where(glass, "clear", "paint").astype(object)
+    table.colour[:] = 0.5  # no colour cue left: only the material says it
+    table.alpha = np.where(glass, 0.3, 1.0)
+    lab = infer(table, forward="+X", up="+Z")
+    assert (lab.labels[glass] == "windows").all() and set(lab.evidence[glass]) == {"material"}
+    # an OBJ importer's "transmission 1" on the body material itself is no glass
+    table.alpha[:] = 1.0
+    table.materials[:] = "body"
+    table.transmission = np.ones(len(table))
+    lab = infer(table, forward="+X", up="+Z")
+    assert not (lab.labels == "windows").any()
+    assert any("no windows" in w for w in lab.warnings)
+
+
+def test_proposed_rules_load_and_reproduce_the_inference(tmp_path):
+    table, _ = synthetic_car()
+    lab = infer(table)
+    text = propose_rules(table, lab, "synthetic.glb", length=4.2)
+    path = tmp_path / "r.toml"
+    path.write_text(text)
+    rules = load_rules(path)
+    assert (rules.model.forward, rules.model.up, rules.model.length) == ("+X", "+Z", 4.2)
+    assert tomllib.loads(text)["rule"]
+    again, hits = rule_labels(table, rules, "body")
+    assert agreement(again, lab.labels, table.areas()) > 0.99
+
+
+@pytest.mark.skipif(not (ASSETS / "cars3d" / "sedan.glb").is_file(), reason="needs ../shared/assets")
+def test_label_parts_cli_on_a_kenney_model_and_auto_rules_render(tmp_path):
+    model = ASSETS / "cars3d" / "sedan.glb"
+    cli = [sys.executable, "-c", "from blender_gen.cli import main; main()"]
+    run = subprocess.run(cli + ["label-parts", str(model), "--out", str(tmp_path / "sedan.toml"),
+                                "--preview", str(tmp_path / "sedan.png")], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, run.stderr
+    assert "forward -Y, up +Z" in run.stdout and "tyres" in run.stdout and "windows" in run.stdout
+    assert (tmp_path / "sedan.png").stat().st_size > 10000
+    rules = load_rules(tmp_path / "sedan.toml")
+    assert rules.model.forward == "-Y"
+    # existing files are not overwritten without --force
+    again = subprocess.run(cli + ["label-parts", str(model), "--out", str(tmp_path / "sedan.toml")],
+                           capture_output=True, text=True, cwd=ROOT)
+    assert again.returncode != 0 and "--force" in again.stderr
+    # --car-rules auto: the same inference inside a dataset
+    gen = subprocess.run(cli + ["intrinsics", "--out", str(tmp_path / "ds"), "--count", "1", "--resolution", "64x32",
+                                "--cars", str(model), "--car-rules", "auto", "--quiet"], capture_output=True, text=True,
+                         cwd=ROOT)
+    assert gen.returncode == 0, gen.stderr
+    assert (tmp_path / "ds" / "samples" / "000000.exr").is_file()
