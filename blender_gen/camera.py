@@ -161,10 +161,19 @@ def orbit_focal(points: np.ndarray, orbit: Orbit, width: int, height: int,
     """The orbit's focal length: its own, or the longest that keeps the car whole in every frame."""
     if orbit.focal is not None:
         return float(orbit.focal)
-    for focal in range(80, 9, -1):
+
+    def fits(focal: int) -> bool:
         trial = replace(orbit, focal=float(focal))
-        if all(_orbit_view(points, trial, k, width, height, ranges)[1] for k in range(orbit.frames)):
-            return float(focal)
+        return all(_orbit_view(points, trial, k, width, height, ranges)[1] for k in range(orbit.frames))
+
+    # a shorter lens only widens the view from the same place, so "fits" is monotone in the focal
+    # length: bisect the whole millimetres 10..80 (7 checks of every frame instead of up to 71)
+    if fits(10):
+        lo, hi = 10, 81  # fits(lo), and nothing at hi or above is tried
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+        return float(lo)
     raise CameraError(f"turntable: the car does not fit the {width}x{height} frame at --radius {orbit.radius} m, "
                       f"--height {orbit.height} m even with a 10 mm lens; increase --radius")
 

@@ -182,6 +182,8 @@ def read_answers(path: Path, key: dict) -> dict:
     data = _read_json(path, f"{path}: no such answer file", f"{path}: not a JSON answer file")
     if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("answers"), list):
         raise StudyError(f"{path}: not an answer file of `iae-eval ab-study` (expected schema {SCHEMA})")
+    if "study" not in data:
+        raise StudyError(f"{path}: 'study' missing: an answer file names the study it answers")
     if data.get("study") != key["study"]:
         raise StudyError(f"{path}: answers to study {str(data.get('study'))[:40]!r}, not {key['study']!r} "
                          "(the --study key); summarise one study at a time")
@@ -190,10 +192,22 @@ def read_answers(path: Path, key: dict) -> dict:
     pairs = {p["pair"]: p for p in key["pairs"]}
     seen: set[int] = set()
     for i, ans in enumerate(data["answers"]):
-        p = pairs.get(ans.get("pair")) if isinstance(ans, dict) and isinstance(ans.get("pair"), int) else None
-        if p is None or ans.get("kind") != p["kind"] or ans.get("chosen") not in (p["left"], p["right"]):
-            raise StudyError(f"{path}: answer {i} is malformed or names no pair of this study "
-                             f"({json.dumps(ans)[:120]})")
+        where = f"{path}: answer {i}"
+        if not isinstance(ans, dict):
+            raise StudyError(f"{where} is not a JSON object ({json.dumps(ans)[:80]})")
+        pair = ans.get("pair")
+        if not isinstance(pair, int) or isinstance(pair, bool):
+            raise StudyError(f"{where}: 'pair' must be a pair number of this study, got {json.dumps(pair)[:40]}")
+        p = pairs.get(pair)
+        if p is None:
+            raise StudyError(f"{where}: pair {pair} is not in this study (it has {len(pairs)} pairs); "
+                             "answers for pairs the study does not have are refused")
+        if ans.get("kind") != p["kind"]:
+            raise StudyError(f"{where}: 'kind' is {json.dumps(ans.get('kind'))[:40]}, but pair {pair} is a "
+                             f"{p['kind']!r} comparison")
+        if ans.get("chosen") not in (p["left"], p["right"]):
+            raise StudyError(f"{where}: 'chosen' is {json.dumps(ans.get('chosen'))[:40]}, but pair {pair} shows "
+                             f"{p['left']!r} and {p['right']!r}")
         if p["pair"] in seen:
             raise StudyError(f"{path}: pair {p['pair']} is answered twice; one answer per participant and pair")
         seen.add(p["pair"])

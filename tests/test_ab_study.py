@@ -123,7 +123,7 @@ def test_summary_counts_each_participant_and_pair_once_with_the_studys_labels(tm
         (row,) = summarise(order, key)["rows"]
         assert row["comparison"] == "ours vs MUNIT" and row["k"] == 9 and row["n"] == 18
     extra = _answers(tmp_path / "3.json", "s1", "AB", 3, 12, "cy")
-    with pytest.raises(StudyError, match="answer 9 is malformed or names no pair of this study"):
+    with pytest.raises(StudyError, match="answer 9: pair 9 is not in this study"):
         summarise([extra], key)
     again = _answers(tmp_path / "4.json", "s1", "AB", 2, 9, "ann")
     with pytest.raises(StudyError, match="participant 'ann' already answered"):
@@ -141,8 +141,23 @@ def test_answers_of_another_study_or_malformed_files_are_refused(tmp_path, study
         summarise([f1, f2], key)
     bad = tmp_path / "bad.json"
     bad.write_text('{"schema": "iae-ab-study/1", "study": "s1", "answers": [{"kind": "AB", "chosen": "real"}]}')
-    with pytest.raises(StudyError, match=r"bad.json: answer 0 is malformed"):
+    with pytest.raises(StudyError, match=r"bad.json: answer 0: 'pair' must be a pair number of this study, got null"):
         summarise([bad], key)
+    # one message per field, naming it
+    good = json.loads(f1.read_text())
+    first = good["answers"][0]
+    for change, message in (({"kind": "Ar"}, "'kind' is \"Ar\", but pair"), ({"chosen": "Z"}, "'chosen' is \"Z\", but pair"),
+                            ({"pair": "0"}, "'pair' must be a pair number"), ({"pair": True}, "'pair' must be a pair number")):
+        edited = tmp_path / "edited.json"
+        edited.write_text(json.dumps({**good, "answers": [{**first, **change}]}))
+        with pytest.raises(StudyError, match=message):
+            summarise([edited], key)
+    edited.write_text(json.dumps({**good, "answers": ["x"]}))
+    with pytest.raises(StudyError, match="answer 0 is not a JSON object"):
+        summarise([edited], key)
+    edited.write_text(json.dumps({k: v for k, v in good.items() if k != "study"}))
+    with pytest.raises(StudyError, match="'study' missing"):
+        summarise([edited], key)
     mistyped = tmp_path / "mistyped.json"
     mistyped.write_text('{"schema": "iae-ab-study/1", "study": "s1", "participant": 7, "answers": []}')
     with pytest.raises(StudyError, match="'participant' must be a string"):

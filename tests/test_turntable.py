@@ -74,6 +74,11 @@ def test_the_fitted_focal_length_is_the_longest_that_shows_the_car_in_every_fram
     ok = lambda focal: all(_orbit_view(box, replace(orbit, focal=focal), k, 128, 64, CameraRanges())[1]  # noqa: E731
                            for k in range(12))
     assert 10 <= f < 80 and ok(f) and not ok(f + 1)
+    for radius, height in ((4.0, 0.5), (6.0, 3.0), (9.0, 1.0), (30.0, 2.0)):  # bisection = the longest that fits
+        o = replace(orbit, radius=radius, height=height)
+        fits = lambda focal, o=o: all(_orbit_view(box, replace(o, focal=float(focal)), k, 128, 64, CameraRanges())[1]  # noqa: E731
+                                      for k in range(12))
+        assert orbit_focal(box, o, 128, 64) == max(fl for fl in range(10, 81) if fits(fl)), (radius, height)
     assert orbit_focal(box, replace(orbit, focal=50.0), 128, 64) == 50.0  # a given focal length is kept
     with pytest.raises(CameraError, match="even with a 10 mm lens; increase --radius"):
         orbit_focal(box, replace(orbit, radius=2.4), 128, 64)
