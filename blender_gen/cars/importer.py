@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import Mesh
-from .faces import BLEND_MAGICS, FaceTable, read_faces, read_objects, remove_objects  # noqa: F401 (re-exported)
+from .faces import read_faces, remove_objects
 from .rules import SPLIT_PARTS, ModelSettings, Rules, RulesError, rule_labels
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 

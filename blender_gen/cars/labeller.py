@@ -138,7 +138,6 @@ def _hsv(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     v, c = mx, mx - mn
     s = np.where(mx > 1e-6, c / np.maximum(mx, 1e-6), 0.0)
     r, g, b = rgb.T
-    h = np.zeros(len(rgb))
     m = c > 1e-6
     hr = ((g - b) / np.where(m, c, 1)) % 6
     hg = (b - r) / np.where(m, c, 1) + 2
@@ -170,13 +169,12 @@ def _colour_groups(colour: np.ndarray, uv: np.ndarray | None = None, bins: int =
     return inv.ravel()
 
 
-def infer_forward(pts: np.ndarray, areas: np.ndarray, colour: np.ndarray, uv: np.ndarray, length_axis: int) -> float:
+def infer_forward(pts: np.ndarray, areas: np.ndarray, colour: np.ndarray, groups: np.ndarray, length_axis: int) -> float:
     """+1 if the car faces +length_axis, -1 if the other way, 0 if its lamps do not tell: small
     red face groups gather at the rear (tail lights), small white or yellow ones at the front."""
     x = pts[:, length_axis]
     lo, hi = x.min(), x.max()
     span = max(hi - lo, 1e-9)
-    groups = _colour_groups(colour, uv)
     total = areas.sum()
     toward_hi = toward_lo = 0.0  # evidence that the front is at the high / low end
     for g in np.unique(groups):
@@ -203,6 +201,7 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     tris, areas = table.tris, table.areas()
     n = len(tris)
     warnings: list[str] = []
+    groups = _colour_groups(table.colour, table.uv)  # used by the lamps (forward) and the colour stage
     if up is None:  # the wheels are at the bottom; failing named wheels, the car narrows upwards
         wheels = np.array([any(fnmatch.fnmatchcase(f"{o} {m}".lower(), g) for g in ("*wheel*", "*tyre*", "*tire*"))
                            for o, m in zip(table.objects, table.materials)], bool)
@@ -214,7 +213,7 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
         length_axis = max(extents, key=extents.get)
         k = "XYZ".index(length_axis[1])
         centres = tris.mean(1)
-        sign = infer_forward(centres, areas, table.colour, table.uv, k)
+        sign = infer_forward(centres, areas, table.colour, groups, k)
         if sign == 0.0:  # no lamps to go by: the hood is lower than the roof's rear end
             x, z = centres[:, k], centres @ u
             lo, hi = x.min(), x.max()
@@ -286,7 +285,6 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     # paint. Lamps are small groups at an end; the other clusters are told by colour and place.
     rest = labels == ""
     if rest.any() and np.isfinite(table.colour[rest, 0]).any():
-        groups = _colour_groups(table.colour, table.uv)
         ids = [g for g in np.unique(groups[rest]) if np.isfinite(table.colour[rest & (groups == g), 0]).all()]
         gsel = {g: rest & (groups == g) for g in ids}
         garea = {g: float(areas[gsel[g]].sum()) for g in ids}
