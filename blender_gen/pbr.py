@@ -22,10 +22,6 @@ from .render import SampleRenderer
 
 class PbrRenderer(SampleRenderer):
     physical = True
-    # Block replay (a fresh Cycles session per block) made a resumed PBR sample byte-identical, but
-    # fresh-session renders disagree with the intrinsics render on 12% of the car's pixels (material
-    # id, mask) where persistent-session renders agree exactly: off until that is understood.
-    replay_blocks = False
 
     def _configure(self, threads: int) -> None:
         # Denoiser settings make Cycles probe for CUDA; on a machine without it every worker printed

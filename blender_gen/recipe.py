@@ -58,6 +58,8 @@ class Recipe:
             d["catalogue"] = catalogue_digest()
         if self.background == "black":  # sets made before the option existed keep their identity
             del d["background"]
+        if self.orbit is None:  # per-sample Cycles noise by frame number (render.py); older sets
+            d["noise"] = "frame"  # used the first-rendered sample's seed and cannot be resumed
         return d
 
     def envmap_names(self) -> list[str]:
@@ -96,6 +98,9 @@ def block_seed(seed: int, index: int, views_per_car: int) -> int:
 def identity_diff(old: dict, new: dict) -> str | None:
     """The first field where two recipe identities differ, as text; None if equal."""
     for key in sorted(set(old) | set(new)):
+        if key == "noise" and key not in old and old:
+            return ("it was made by an older iae-gen whose samples depended on the order they were rendered "
+                    "in, so it cannot be extended or resumed byte-identically")
         if old.get(key) != new.get(key):
             return f"{key!r} is {old.get(key)!r} there and {new.get(key)!r} here"
     return None

@@ -242,32 +242,26 @@ class SampleRenderer:
             bpy.ops.render.render(write_still=True)
         return self._read_passes()
 
-    # Cycles' persistent data (BVH and shaders kept between renders) makes a PBR render depend on
-    # the renders before it in the session (measured: 23% of normal pixels of a sample differ when
-    # it is rendered first rather than third). A PBR sample must be a pure function of (recipe,
-    # index) however a run was cut, so each block of views starts a new session, and a sample
-    # reached out of order (a resumed or re-sharded run) first replays its block's earlier views.
-    replay_blocks = False
+    # A persistent Cycles session (BVH and shaders kept between renders) keeps the integrator seed
+    # of its first render and ignores later changes to `scene.cycles.seed` (measured: a sample
+    # rendered after another one used that one's seed, so a resumed run re-rendered it with other
+    # noise). The frame number does reach a persistent session: with an animated seed Cycles
+    # hashes it with one recipe-wide seed, so each sample gets its own noise, a function of
+    # (recipe, index) alone. A turntable keeps one seed for every frame (frame 1 throughout).
+    MAX_FRAME = 1_000_000  # below Blender's frame limit; noise patterns repeat after a million samples
 
     def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
-        if not self.replay_blocks or self.recipe.orbit is not None:
-            return self._render_sample(index)
-        start = index - index % self.recipe.views_per_car
-        if not (index > start and getattr(self, "_last_index", None) == index - 1):
-            for j in range(start, index):  # not written: they only rebuild the session's state
-                self._render_sample(j, fresh=j == start)
-        out = self._render_sample(index, fresh=index == start)
-        self._last_index = index
-        return out
-
-    def _render_sample(self, index: int, fresh: bool = False) -> tuple[dict[str, np.ndarray], dict]:
-        if self.replay_blocks:  # a render without persistent data ends the session it used
-            self.scene.render.use_persistent_data = not fresh
         d = self.draw(index)
         self.show(d["car"])
         self.set_environment(self.env_image(d["env"]))
         self.place(d)
-        self.scene.cycles.seed = d["seed"]
+        cy = self.scene.cycles
+        orbit = self.recipe.orbit is not None
+        cy.use_animated_seed = not orbit
+        cy.seed = sample_seed(self.recipe.seed, 0)
+        frame = 1 if orbit else index % self.MAX_FRAME + 1
+        if self.scene.frame_current != frame:
+            self.scene.frame_set(frame)
         return self.render_current(), d
 
     def _read_passes(self) -> dict[str, np.ndarray]:

@@ -101,15 +101,11 @@ def test_pbr_resumes_and_rejects_bad_input(tmp_path):
     assert bad.returncode != 0 and "Invalid value for '--samples'" in bad.stderr
 
 
-@pytest.mark.parametrize("kind", [
-    pytest.param("pbr", marks=pytest.mark.xfail(strict=True, reason=(
-        "issue 19.2, open: with Cycles' persistent data a PBR sample depends on the renders before it; "
-        "a fresh session per block fixes that but then disagrees with the intrinsics render (README)"))),
-    "intrinsics"])
+@pytest.mark.parametrize("kind", ["pbr", "intrinsics"])
 def test_a_deleted_sample_of_a_block_is_rerendered_byte_identical(tmp_path, kind):
     """Issue 19.2: a sample is a pure function of recipe and index, however the run that renders it
-    was cut: delete any sample of a multi-sample block, resume, compare bytes (PBR replays the
-    block's earlier views, since Cycles' persistent data carries state between renders)."""
+    was cut: delete any sample of a multi-sample block, resume, compare bytes. (A persistent Cycles
+    session ignores seed changes after its first render: the sample's noise comes from the frame.)"""
     out = tmp_path / kind
     args = (kind, "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3", "--quiet",
             *(["--samples", "2"] if kind == "pbr" else []))
