@@ -342,14 +342,15 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         targets.append((token, name, rules_path, png))
     from .cars.importer import model_files
     from .cars.rules import rule_labels
-    from .cars.faces import read_faces, remove_objects
+    from .cars.faces import read_car
     from .cars.labeller import agreement, infer, propose_rules
     from .dataset import atomic_target
 
     for token, name, rules_path, png in targets:
         with one_line_errors():
-            table, objects = read_faces(model_files(token))
-            remove_objects(objects)
+            table, placed = read_car(model_files(token), forward, up)
+        for line in placed:
+            click.echo(f"{name}: placed {line}")
         lab = infer(table, forward=forward, up=up)
         areas = table.areas()
         text = propose_rules(table, lab, Path(token.split("+")[0]).name, length=length)

@@ -139,15 +139,18 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
               help="Run folder whose R renders the path (repeatable).")
 @click.option("--path", "path", required=True, type=click.Path(path_type=Path),
               help="Cycles frames of a camera path: `iae-gen turntable --pbr`.")
+@click.option("--intrinsics", type=click.Path(path_type=Path), default=None,
+              help="R's input instead of --path's own layers: an intrinsics turntable of the same path (e.g. "
+                   "`--background environment` for runs trained on it).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the figures as JSON.")
-def flicker(runs, path, out) -> None:
+def flicker(runs, path, intrinsics, out) -> None:
     """Temporal flicker: R's mean frame-to-frame change relative to Cycles' on the same camera path."""
     from blender_gen.dataset import atomic_write_json
 
     from .flicker import measure_flicker
 
     with one_line_errors():
-        results = [measure_flicker(r, path) for r in runs]
+        results = [measure_flicker(r, path, intrinsics) for r in runs]
         if out:
             atomic_write_json(out, results)
     c = results[0]["cycles"]

@@ -50,21 +50,55 @@ def _to255(t: torch.Tensor) -> np.ndarray:
     return ((t.float().clamp(-1, 1) + 1.0) * 127.5).permute(1, 2, 0).cpu().numpy()
 
 
+# Recipe fields that place the camera and the car: an --intrinsics path must agree on all of them.
+_SAME_PATH = ("orbit", "cars", "seed", "width", "height", "envmaps", "camera")
+
+
+def _trained_background(run_dir: Path) -> str | None:
+    """The reflection background of the intrinsics a run was trained on (None if they are gone)."""
+    from blender_gen.dataset import read_info
+    from train.inference import load_run_options
+
+    opts, _ = load_run_options(run_dir)
+    try:
+        return (read_info(Path(opts["intrinsics"])).get("recipe") or {}).get("background", "black")
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 @torch.no_grad()
-def measure_flicker(run_dir: Path, path: Path, device: str = "cpu") -> dict:
-    """R's and Cycles' frame-to-frame change on a PBR turntable set, at R's training size."""
+def measure_flicker(run_dir: Path, path: Path, intrinsics: Path | None = None, device: str = "cpu") -> dict:
+    """R's and Cycles' frame-to-frame change on a PBR turntable set, at R's training size.
+
+    R renders the PBR set's own intrinsic layers, or those of `intrinsics`: an intrinsics
+    turntable of the same orbit, e.g. with `--background environment` for a run trained so
+    (the PBR set's reflection layer is black off the car)."""
     from train.inference import load_run
 
     cfg, model, step = load_run(run_dir, device)
     h, w = cfg.data.height, cfg.data.width
-    data = IntrinsicsData(path, h, w)
-    if data.ds.kind != "pbr":
+    cycles_set = RealImages(path, h, w)
+    path_recipe = cycles_set.ds.info.get("recipe") or {}
+    if cycles_set.ds.kind != "pbr":
         raise ValueError(f"--path {path}: flicker needs Cycles' frames of the path (`iae-gen turntable --pbr`), "
-                         f"got a dataset of kind {data.ds.kind!r}")
-    if not (data.ds.info.get("recipe") or {}).get("orbit"):  # random views: their ratios would mean nothing
+                         f"got a dataset of kind {cycles_set.ds.kind!r}")
+    if not path_recipe.get("orbit"):  # random views: their ratios would mean nothing
         raise ValueError(f"--path {path}: not a camera path (made by `iae-gen pbr`, not `iae-gen turntable --pbr`); "
                          "flicker compares consecutive frames of one orbit")
-    cycles_set = RealImages(path, h, w)
+    data = IntrinsicsData(intrinsics or path, h, w)
+    background = (data.ds.info.get("recipe") or {}).get("background", "black")
+    if intrinsics:
+        theirs = data.ds.info.get("recipe") or {}
+        differ = [k for k in _SAME_PATH if theirs.get(k) != path_recipe.get(k)]
+        if differ or len(data) != len(cycles_set):
+            what = ", ".join(differ) if differ else f"{len(data)} frames against {len(cycles_set)}"
+            raise ValueError(f"--intrinsics {intrinsics}: not the camera path of --path {path} ({what} differ); "
+                             "make it with the same `iae-gen turntable` options")
+    trained = _trained_background(run_dir)
+    if trained is not None and trained != background:
+        raise ValueError(f"--run {run_dir} was trained on intrinsics with the {trained!r} background, but R would "
+                         f"render the {background!r} background of {intrinsics or path}; pass --intrinsics with an "
+                         f"`iae-gen turntable ... --background {trained}` set of the same path")
     n = len(data)
     r_frames, c_frames, masks = [], [], []
     for i in range(n):
@@ -79,7 +113,8 @@ def measure_flicker(run_dir: Path, path: Path, device: str = "cpu") -> dict:
     if c["whole_frame"] == 0:
         raise ValueError(f"--path {path}: Cycles' frames do not change along the path (a still camera?): there is "
                          "no motion to compare R's change with")
-    return {"run": str(run_dir), "step": step, "path": str(path), "size": [w, h], "renderer": r, "cycles": c,
+    return {"run": str(run_dir), "step": step, "path": str(path), "intrinsics": str(intrinsics or path),
+            "size": [w, h], "renderer": r, "cycles": c,
             "temporal_error": temporal_error(rf, cf, mf),
             "ratio_whole_frame": r["whole_frame"] / c["whole_frame"],
             "ratio_car": r["car"] / c["car"] if c["car"] > 0 else float("nan")}

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blender_gen.cars.labeller import FaceTable, agreement, infer, infer_up, propose_rules
+from blender_gen.cars.labeller import FaceTable, agreement, face_normals, infer, infer_up, propose_rules
 from blender_gen.cars.rules import load_rules, rule_labels
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -144,3 +144,79 @@ def test_label_parts_cli_on_a_kenney_model_and_auto_rules_render(tmp_path):
                          cwd=ROOT)
     assert gen.returncode == 0, gen.stderr
     assert (tmp_path / "ds" / "samples" / "000000.exr").is_file()
+
+
+def _body_with_arches(axles=(1.3, -1.4), radius=0.35, half_width=0.9):
+    """Side walls (y = +-half_width) of a 4.4 m body from z = 0.2 to 1.3, with semicircular arches of
+    radius + 0.05 over wheels standing at `axles` (x), plus a roof: small triangles, facing +X."""
+    tris = []
+    step = 0.05
+    for x in np.arange(-2.2, 2.2, step):
+        for z in np.arange(0.2, 1.3, step):
+            cx, cz = x + step / 2, z + step / 2
+            if any(np.hypot(cx - a, cz - radius) < radius + 0.05 for a in axles):
+                continue  # the arch
+            for y in (-half_width, half_width):
+                tris.append([[x, y, z], [x + step, y, z], [x, y, z + step]])
+    for x in np.arange(-2.2, 2.2, 0.2):
+        for y in np.arange(-half_width, half_width, 0.2):
+            tris.append([[x, y, 1.3], [x + 0.2, y, 1.3], [x, y + 0.2, 1.3]])
+    return np.array(tris, float)
+
+
+def _wheel_at_origin(radius=0.35, width=0.22, hub=0.03, n=16):
+    """A tyre band around the y axis plus a hub disc protruding `hub` on the -y (right) side."""
+    a = np.linspace(0, 2 * np.pi, n + 1)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], -1)
+    tris = []
+    for (x0, z0), (x1, z1) in zip(ring[:-1], ring[1:]):
+        tris.append([[x0, -width / 2, z0], [x1, -width / 2, z1], [x0, width / 2, z0]])
+        tris.append([[0, -width / 2 - hub, 0], [x0 * 0.6, -width / 2, z0 * 0.6], [x1 * 0.6, -width / 2, z1 * 0.6]])
+    return np.array(tris, float)
+
+
+def _table(parts: list[tuple[np.ndarray, str]]):
+    tris = np.concatenate([t for t, _ in parts])
+    n = len(tris)
+    normals = np.repeat(face_normals(tris)[:, None], 3, axis=1)
+    objects = np.concatenate([[name] * len(t) for t, name in parts]).astype(object)
+    return FaceTable(tris=tris, normals=normals, objects=objects, materials=np.full(n, "", object),
+                     uv=np.full((n, 2), np.nan), colour=np.full((n, 3), np.nan), textured=np.zeros(n, bool),
+                     alpha=np.ones(n), transmission=np.zeros(n), emission=np.zeros(n))
+
+
+def test_wheel_files_modelled_at_the_origin_go_into_the_arches_and_are_mirrored():
+    """Issue 18.4: a body plus wheel files authored at the origin (MetaDrive's Beetle) loads as one
+    car: each wheel in the arch its name says, mirrored to the other side, all on one axle height."""
+    from blender_gen.cars.rules import RulesError
+    from blender_gen.cars.wheels import find_arches, place_wheel_files
+
+    body, wheel = _body_with_arches(), _wheel_at_origin()
+    front, back = find_arches(body.mean(1), 0.35)
+    assert front.x == pytest.approx(1.3, abs=0.1) and back.x == pytest.approx(-1.4, abs=0.1)
+    assert front.top == pytest.approx(0.75, abs=0.06) and front.outer == pytest.approx(0.9, abs=1e-6)
+    names = ["body.gltf", "right_tire_front.gltf", "right_tire_back.gltf"]
+    table = _table([(body, "body"), (wheel, "tire"), (wheel, "tire")])
+    index = np.repeat([0, 1, 2], [len(body), len(wheel), len(wheel)])
+    placed, report = place_wheel_files(table, index, names, "+X", "+Z")
+    assert len(report) == 4 and sum("mirrored" in line for line in report) == 2
+    wheels = placed.tris[placed.objects == "tire"]
+    assert len(wheels) == 4 * len(wheel) and (placed.objects == "body").sum() == len(body)
+    centres = sorted(tuple(np.round((w.reshape(-1, 3).min(0) + w.reshape(-1, 3).max(0)) / 2, 2))
+                     for w in np.split(wheels, 4))
+    xs, ys, zs = np.array(centres).T
+    assert sorted(set(np.round(xs, 1))) == [-1.4, 1.3]  # the two axles
+    assert (np.abs(ys) > 0.6).all() and (np.abs(ys) < 0.9).all() and sorted(np.sign(ys)) == [-1, -1, 1, 1]
+    assert np.ptp(zs) < 1e-6 and zs[0] == pytest.approx(0.35, abs=0.06)  # level, standing about on z = 0
+    outer = np.abs(wheels.reshape(-1, 3)[:, 1]).max()
+    assert 0.85 < outer < 0.9  # just inside the body's side
+    # the mirrored copies keep their faces wound outwards: hubs point away from the car on both sides
+    for w in np.split(wheels, 4):
+        hub = w[np.abs(w[:, :, 1]).max(1) == np.abs(w.reshape(-1, 3)[:, 1]).max()]
+        assert len(hub) and (np.sign(face_normals(hub)[:, 1]) == np.sign(w.reshape(-1, 3)[:, 1].mean())).all()
+    # placed wheels are left alone; a body without arches is a clear error
+    again, report = place_wheel_files(placed, np.repeat([0, 1], [len(body), 4 * len(wheel)]), names[:2], "+X", "+Z")
+    assert report == [] and np.array_equal(again.tris, placed.tris)
+    flat = _table([(_body_with_arches(axles=()), "body"), (wheel, "tire")])
+    with pytest.raises(RulesError, match="no front and back wheel arch"):
+        place_wheel_files(flat, np.repeat([0, 1], [len(flat) - len(wheel), len(wheel)]), names[:2], "+X", "+Z")

@@ -151,6 +151,17 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
         bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(folder)],
                              cwd=ROOT, capture_output=True, text=True)
         assert bad.returncode == 1 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+    # --intrinsics: R's input from another set of the same path; it must be that path and the
+    # background the run was trained on (this run: black; the intrinsics turntable: environment)
+    for given, message in ((paths / "intr", "trained on intrinsics with the 'black' background"),
+                           (not_a_path, "not the camera path of --path")):
+        bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path",
+                              str(paths / "pbr"), "--intrinsics", str(given)], cwd=ROOT, capture_output=True, text=True)
+        assert bad.returncode == 1 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+    again = tmp_path / "again.json"
+    subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(paths / "pbr"),
+                    "--intrinsics", str(paths / "pbr"), "--out", str(again)], cwd=ROOT, check=True, capture_output=True)
+    assert json.loads(again.read_text())[0]["renderer"] == json.loads(out.read_text())[0]["renderer"]
 
 
 def test_one_ctrl_c_during_a_cycles_render_stops_cleanly_and_resumes(tmp_path):

@@ -114,22 +114,50 @@ def _material_info(mat, model: Path) -> dict:
     return info
 
 
+def read_car(paths: list[Path], forward: str | None = None, up: str | None = None) -> tuple[FaceTable, list[str]]:
+    """The faces of one car (one file, or a body and its wheel files), imported objects removed.
+    Wheel files modelled at the origin are put into the body's arches (`wheels.py`), in the frame
+    given or, failing that, the body's inferred one. Returns the table and what was placed."""
+    table, objects, file_index = _read_files(paths)
+    remove_objects(objects)
+    if len(paths) == 1:
+        return table, []
+    from .labeller import infer
+    from .wheels import place_wheel_files, take
+
+    body = np.nonzero(file_index == 0)[0]
+    if len(body) == 0:
+        raise RulesError(f"{paths[0]}: the body file (the first of '+') has no mesh faces")
+    if forward is None or up is None:
+        lab = infer(take(table, body), forward=forward, up=up)
+        forward, up = lab.forward, lab.up
+    return place_wheel_files(table, file_index, [p.name for p in paths], forward, up)
+
+
 def read_faces(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object]]:
-    """Import every file (one car, possibly several files) and tabulate its triangles. Returns the
-    imported objects too; the caller removes them (`remove_objects`)."""
+    """Import every file (one car, possibly several files) and tabulate its triangles as they are
+    authored. Returns the imported objects too; the caller removes them (`remove_objects`)."""
+    table, objects, _ = _read_files(paths)
+    return table, objects
+
+
+def _read_files(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object], np.ndarray]:
     objects: list[bpy.types.Object] = []
     rows: dict[str, list] = {k: [] for k in ("tris", "normals", "objects", "materials", "uv", "colour", "textured",
                                              "alpha", "transmission", "emission")}
+    file_index: list[np.ndarray] = []
     try:
-        for path in paths:
+        for k, path in enumerate(paths):
             try:
                 new = read_objects(path)
             except RuntimeError as exc:  # Blender's importers report a bad file as RuntimeError
                 raise RulesError(f"{path}: cannot be imported ({first_line(exc)})") from None
             objects += new
             depsgraph = bpy.context.evaluated_depsgraph_get()
+            before = sum(len(t) for t in rows["tris"])
             for obj in (o for o in new if o.type == "MESH"):
                 _read_mesh(obj, depsgraph, path, rows)
+            file_index.append(np.full(sum(len(t) for t in rows["tris"]) - before, k))
     except BaseException:
         remove_objects(objects)
         raise
@@ -137,7 +165,7 @@ def read_faces(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object]]:
         remove_objects(objects)
         raise RulesError(f"{', '.join(map(str, paths))}: no mesh objects in the file")
     cat = {k: np.concatenate(v) for k, v in rows.items()}
-    return FaceTable(**cat), objects
+    return FaceTable(**cat), objects, np.concatenate(file_index)
 
 
 def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import Mesh
-from .faces import read_faces, remove_objects
+from .faces import read_car
 from .rules import SPLIT_PARTS, ModelSettings, Rules, RulesError, rule_labels
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 
@@ -50,15 +50,15 @@ def model_files(path: str | Path) -> list[Path]:
 
 def import_model(path: str | Path, rules: Rules) -> ImportedModel:
     files = model_files(path)
-    table, objects = read_faces(files)
-    remove_objects(objects)
     if rules.auto:
         from .labeller import infer
 
+        table, _ = read_car(files)
         lab = infer(table)
         settings = ModelSettings(forward=lab.forward, up=lab.up, length=rules.model.length, category=lab.category)
         return _normalise(files[0], settings, table.tris, table.normals, lab.labels, int((lab.evidence == "default").sum()))
     settings = rules.settings_for(files[0])
+    table, _ = read_car(files, settings.forward, settings.up)
     labels, rule_hits = rule_labels(table, rules, settings.default_part)
     if sum(n for idx, n in rule_hits.items() if idx) == 0:
         raise RulesError(f"{path}: no rule of {rules.path} matched any face (all {len(labels)} faces would be "
