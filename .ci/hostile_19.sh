@@ -160,6 +160,8 @@ case_ "10 flicker on a PBR set that is not a camera path" 1 "not a camera path" 
 echo "== 11 video options"
 case_ "11 render --video --fps nan" "1|2" "fps" -- \
   iae-train render --run "$W/run" --intrinsics "$W/intr" --out "$W/f2" --video "$W/v2.mp4" --fps nan
+case_ "11 a video in a read-only folder: one line naming why, before any frame" 1 "cannot write in /sys: Permission denied" -- \
+  iae-train render --run "$W/run" --intrinsics "$W/intr" --out "$W/f5" --video /sys/iae.mp4
 
 echo "== 12 planning and progress"
 case_ "12 reproduce --dry-run --jobs 100 caps the jobs" 0 "job" -- iae-eval reproduce --budget cpu --dry-run --jobs 100 --out "$W/r2"

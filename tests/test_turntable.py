@@ -5,6 +5,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -124,6 +125,14 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
                     "--video", str(tmp_path / "R.avi"), check=False)
     assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
+    # issue 19.11: a folder that cannot take the video fails before any frame, naming why (as root a
+    # read-only folder is writable, so the folder here is a file; /sys stands for read-only where it is)
+    (tmp_path / "afile").write_text("x")
+    for target in [tmp_path / "afile" / "R.mp4"] + ([Path("/sys/iae_test.mp4")] if Path("/sys").is_dir() else []):
+        bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f4"),
+                        "--video", str(target), check=False)
+        assert bad.returncode == 1 and f"--video {target}: cannot write in {target.parent}" in bad.stderr, bad.stderr
+        assert "No such file" not in bad.stderr and not (tmp_path / "f4").exists()
     out = tmp_path / "flicker.json"
     proc = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(paths / "pbr"),
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True)
