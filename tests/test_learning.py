@@ -63,6 +63,22 @@ def test_input_sensitivity_is_zero_for_a_constant_renderer_and_one_for_a_perfect
     assert input_sensitivity(0.5 * p.images, p.images, on) == pytest.approx(0.5)
 
 
+def test_colour_correlation_is_one_for_the_truth_and_zero_for_one_colour_everywhere():
+    from train.probe import colour_correlation
+
+    p = _probe()
+    on = p.masks[:, 0] >= 0.5
+    assert colour_correlation(p.images, p.images, on) == pytest.approx(1.0)
+    # brightness and exposure do not count: a darker, offset copy keeps its colours
+    assert colour_correlation(0.5 * p.images - 0.2, p.images, on) == pytest.approx(1.0)
+    # the same coloured car drawn for every input: the chroma never varies with the true one
+    one = torch.zeros_like(p.images)
+    one[:, 0], one[:, 2] = 0.4, -0.4
+    assert colour_correlation(one, p.images, on) == pytest.approx(0.0, abs=1e-6)
+    swapped = p.images[:, [2, 1, 0]]  # red for blue: anti-correlated where the colours differ
+    assert colour_correlation(swapped, p.images, on) < 0.5
+
+
 def test_training_means_average_object_pixels_in_linear_light():
     maps = torch.zeros(2, 9, 4, 4)
     maps[:, 2, :, :2] = 1.0  # object on the left half
@@ -82,7 +98,8 @@ def test_evaluate_probe_reports_every_figure_and_restores_train_mode():
     figs = evaluate_probe(model, p)
     assert model.training
     for key in ("normal_deg", "albedo_l1", "reflection_l1", "normal_corr_x", "normal_corr_y", "normal_corr_z",
-                "const_normal_deg", "const_albedo_l1", "const_reflection_l1", "render_l1", "r_sensitivity"):
+                "const_normal_deg", "const_albedo_l1", "const_reflection_l1", "render_l1", "r_sensitivity",
+                "r_colour_corr"):
         assert np.isfinite(figs[f"probe/{key}"]), key
 
 

@@ -9,6 +9,12 @@ table agree up to resizing.
 R's *input sensitivity*: how much R's output changes between different intrinsics, relative
 to how much the true images of those intrinsics differ (car pixels, pairs of probe samples).
 A renderer that draws one picture for every input scores 0, a perfect one 1.
+
+R's *colour correlation*: whether R paints a car the colour it is. Per probe sample, the mean
+colour of R's object pixels and of the true image's, each less its own grey level (so brightness
+and exposure do not count) and less that channel's mean over the probe; the correlation of the
+two over samples and channels. A renderer
+that draws every car in one colour of its own scores about 0 however sharp its shapes are.
 """
 from __future__ import annotations
 
@@ -141,7 +147,24 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
     err = (ren - probe.images).abs().mean(1) * 127.5
     out[f"{PROBE_PREFIX}render_l1"] = float(_per_sample_mean(err, on).mean())
     out[f"{PROBE_PREFIX}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
+    out[f"{PROBE_PREFIX}r_colour_corr"] = colour_correlation(ren, probe.images, on)
     return out
+
+
+def colour_correlation(renders: torch.Tensor, images: torch.Tensor, on: torch.Tensor) -> float:
+    """Correlation over samples and channels of the object's mean chroma (mean colour less its
+    grey level) in R's renders and in the true images. 1: R's car colours vary as the images'."""
+    keep = on.flatten(1).any(1)
+    if keep.sum() < 2:
+        return 0.0
+    w = on[keep].unsqueeze(1).float()
+
+    def chroma(x: torch.Tensor) -> torch.Tensor:  # less each channel's mean over samples: only variation counts
+        mean = (x[keep] * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(1)  # (n, 3)
+        c = mean - mean.mean(1, keepdim=True)
+        return c - c.mean(0, keepdim=True)
+
+    return _corr(chroma(renders).flatten(), chroma(images).flatten())
 
 
 def input_sensitivity(renders: torch.Tensor, images: torch.Tensor, on: torch.Tensor) -> float:
@@ -155,7 +178,8 @@ def input_sensitivity(renders: torch.Tensor, images: torch.Tensor, on: torch.Ten
 
 def probe_plot(rows: list[dict], title: str = "") -> bytes | None:
     """PNG of the probe curves in `stats.jsonl` rows (None when no row has them): H's errors
-    beside the constant predictor's (dashed), normal correlations and R's input sensitivity."""
+    beside the constant predictor's (dashed), normal correlations, R's input sensitivity and colour
+    correlation."""
     rows = [r for r in rows if f"{PROBE_PREFIX}normal_deg" in r]
     if not rows:
         return None
@@ -183,6 +207,7 @@ def probe_plot(rows: list[dict], title: str = "") -> bytes | None:
     for k, axis in enumerate("xyz"):
         axes[2].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
     axes[2].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
+    axes[2].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
     axes[2].set_ylim(-0.2, 1.3)
     for ax, what in zip(axes, ("H: normals", "H: albedo, reflection; R", "agreement")):
         ax.set_xlabel("step")
