@@ -261,7 +261,7 @@ class SampleRenderer:
         cy.seed = sample_seed(self.recipe.seed, 0)
         frame = 1 if orbit else index % self.MAX_FRAME + 1
         if self.scene.frame_current != frame:
-            self.scene.frame_set(frame)
+            self.scene.frame_current = frame
         return self.render_current(), d
 
     def _read_passes(self) -> dict[str, np.ndarray]:
