@@ -214,6 +214,11 @@ def test_wheel_files_modelled_at_the_origin_go_into_the_arches_and_are_mirrored(
     for w in np.split(wheels, 4):
         hub = w[np.abs(w[:, :, 1]).max(1) == np.abs(w.reshape(-1, 3)[:, 1]).max()]
         assert len(hub) and (np.sign(face_normals(hub)[:, 1]) == np.sign(w.reshape(-1, 3)[:, 1].mean())).all()
+    # a file that names the other side is not mirrored over ("rear" is the back axle too)
+    three = _table([(body, "body"), (wheel, "tire"), (wheel, "tire"), (-wheel, "tire")])
+    names3 = ["body.gltf", "right_tire_front.gltf", "right_tire_rear.gltf", "left_tire_rear.gltf"]
+    _, report = place_wheel_files(three, np.repeat([0, 1, 2, 3], [len(body)] + [len(wheel)] * 3), names3, "+X", "+Z")
+    assert len(report) == 4 and [line for line in report if "mirrored" in line] == [report[1]], report
     # placed wheels are left alone; a body without arches is a clear error
     again, report = place_wheel_files(placed, np.repeat([0, 1], [len(body), 4 * len(wheel)]), names[:2], "+X", "+Z")
     assert report == [] and np.array_equal(again.tris, placed.tris)

@@ -21,6 +21,7 @@ from .labeller import FaceTable, _frame
 from .rules import RulesError
 
 ARCH_GAP = 0.1  # clearance between tyre and arch top, in tyre radii
+FRONT, BACK = ("front",), ("back", "rear")  # words in a wheel file's name that pick its axle
 SIDE_BANDS = (0.6, 0.7, 0.8, 0.9)  # faces this far out (share of the half width) form a side profile
 SIDE_INSET = 0.02  # the tyre's outer face sits this share of the body width inside the body's side
 
@@ -158,10 +159,11 @@ def place_wheel_files(table: FaceTable, file_index: np.ndarray, names: list[str]
         t, n = framed[k]
         centre = (t.reshape(-1, 3).min(0) + t.reshape(-1, 3).max(0)) / 2
         t = t - centre
-        arches = [a for a, words in ((front, ("front",)), (back, ("back", "rear"))) if named(k, words)] or [front, back]
-        for arch in arches:
+        both = [(front, FRONT), (back, BACK)]
+        axles = [(a, words) for a, words in both if named(k, words)] or both
+        for arch, words in axles:
             axle_name = "front" if arch is front else "back"
-            others = [j for j in loose if j != k and (named(j, (axle_name,)) or not named(j, ("front", "back", "rear")))]
+            others = [j for j in loose if j != k and (named(j, words) or not named(j, FRONT + BACK))]
             mirror_ok = not any(sides[j] == -sides[k] for j in others)
             for side in (sides[k], -sides[k]) if mirror_ok else (sides[k],):
                 tt, nn = (t, n) if side == sides[k] else _mirror(t, n)
