@@ -86,9 +86,9 @@ def measure_flicker(run_dir: Path, path: Path, intrinsics: Path | None = None, d
         raise ValueError(f"--path {path}: not a camera path (made by `iae-gen pbr`, not `iae-gen turntable --pbr`); "
                          "flicker compares consecutive frames of one orbit")
     data = IntrinsicsData(intrinsics or path, h, w)
-    background = (data.ds.info.get("recipe") or {}).get("background", "black")
+    theirs = data.ds.info.get("recipe") or {}
+    background = theirs.get("background", "black")
     if intrinsics:
-        theirs = data.ds.info.get("recipe") or {}
         differ = [k for k in _SAME_PATH if theirs.get(k) != path_recipe.get(k)]
         if differ or len(data) != len(cycles_set):
             what = ", ".join(differ) if differ else f"{len(data)} frames against {len(cycles_set)}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,8 +50,12 @@ def refuse_output(out: Path, option: str, force: bool) -> Path:
     folder = out.resolve().parent
     while not folder.exists():
         folder = folder.parent
-    if not os.access(folder, os.W_OK):  # before any work: not "No such file" after all of it
-        raise ExportError(f"{option} {out}: {folder} is not writable")
+    try:  # before any work: not "No such file" after all of it. A probe file, since os.access
+        fd, probe = tempfile.mkstemp(prefix=".iae_probe_", dir=folder)  # says yes to root anywhere
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ExportError(f"{option} {out}: cannot write in {folder}: {exc.strerror or exc}") from None
     return out
 
 

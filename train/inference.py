@@ -75,14 +75,13 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
     `side_by_side` puts the intrinsics (normal, albedo, reflection) left of R's frame and, for a
     PBR dataset, Cycles' image right of it.
     """
-    from .video import check_video_folder, check_video_path, display, side_by_side as join, write_video
+    from .video import check_video_path, display, side_by_side as join, write_video
 
     if video is not None:
         from .export import refuse_output
 
         check_video_path(video)
         refuse_output(video, "--video", force_video)  # checked before any frame is rendered
-        check_video_folder(video)
     cfg, model, _ = load_run(run_dir, device)
     data = IntrinsicsData(intrinsics, cfg.data.height, cfg.data.width)
     cycles = RealImages(intrinsics, cfg.data.height, cfg.data.width) if side_by_side and data.ds.kind == "pbr" else None

@@ -13,8 +13,8 @@ A renderer that draws one picture for every input scores 0, a perfect one 1.
 R's *colour correlation*: whether R paints a car the colour it is. Per probe sample, the mean
 colour of R's object pixels and of the true image's, each less its own grey level (so brightness
 and exposure do not count) and less that channel's mean over the probe; the correlation of the
-two over samples and channels. A renderer
-that draws every car in one colour of its own scores about 0 however sharp its shapes are.
+two over samples and channels. A renderer that draws every car in one colour of its own scores
+about 0 however sharp its shapes are.
 """
 from __future__ import annotations
 

@@ -1,8 +1,6 @@
 """Frames to a video file: MP4 (H.264 through imageio's bundled ffmpeg) or an animated GIF (Pillow)."""
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,19 +21,6 @@ def check_video_path(path: Path) -> Path:
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         raise VideoError(f"--video {path}: expected a file ending in {' or '.join(VIDEO_SUFFIXES)}")
     return path
-
-
-def check_video_folder(path: Path) -> None:
-    """Fail before any frame is rendered where the video's folder cannot take a file (read-only,
-    not a folder): ffmpeg would only report it at the end, as a missing file."""
-    parent = Path(path).parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".iae_probe_", dir=parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise VideoError(f"--video {path}: cannot write in {parent}: {exc.strerror or exc}") from None
 
 
 def display(t: torch.Tensor) -> np.ndarray:

@@ -15,8 +15,9 @@ import numpy as np
 
 from ..cli_errors import first_line
 from ..quiet import quiet_stdout
-from .labeller import FaceTable
+from .labeller import FaceTable, infer
 from .rules import MODEL_SUFFIXES, RulesError, base_name
+from .wheels import place_wheel_files, take
 
 BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
@@ -122,9 +123,6 @@ def read_car(paths: list[Path], forward: str | None = None, up: str | None = Non
     remove_objects(objects)
     if len(paths) == 1:
         return table, []
-    from .labeller import infer
-    from .wheels import place_wheel_files, take
-
     body = np.nonzero(file_index == 0)[0]
     if len(body) == 0:
         raise RulesError(f"{paths[0]}: the body file (the first of '+') has no mesh faces")

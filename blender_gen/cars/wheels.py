@@ -13,7 +13,7 @@ all wheels share one axle height, so the car stands level. Files that are alread
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -154,7 +154,6 @@ def place_wheel_files(table: FaceTable, file_index: np.ndarray, names: list[str]
             sides[k] = -1.0 if c - pts[:, 1].min() > pts[:, 1].max() - c else 1.0
     out = [take(table, np.nonzero(~np.isin(file_index, loose))[0])]
     report = []
-    inv = rot.T  # rot is orthonormal: car frame -> model coordinates
     for k in loose:
         t, n = framed[k]
         centre = (t.reshape(-1, 3).min(0) + t.reshape(-1, 3).max(0)) / 2
@@ -170,10 +169,8 @@ def place_wheel_files(table: FaceTable, file_index: np.ndarray, names: list[str]
                 pts = tt.reshape(-1, 3)
                 outer_face = pts[:, 1].max() if side > 0 else -pts[:, 1].min()
                 y = side * (arch.outer - SIDE_INSET * width - outer_face)
-                moved = tt + np.array([arch.x, y, axle])
-                copy = take(wheels[k], np.arange(len(wheels[k])))
-                copy.tris, copy.normals = moved @ inv.T, nn @ inv.T
-                out.append(copy)
+                moved = tt + np.array([arch.x, y, axle])  # back to model coordinates: rot is orthonormal
+                out.append(replace(wheels[k], tris=moved @ rot, normals=nn @ rot))
                 report.append(f"{names[k]}: {axle_name} {'left' if side > 0 else 'right'} wheel at "
                               f"({arch.x:.2f}, {y:.2f}, {axle:.2f}) along, across, up (model units)"
                               f"{'' if side == sides[k] else ' (mirrored)'}")
