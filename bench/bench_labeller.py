@@ -46,7 +46,7 @@ def main() -> None:
         table, objects = read_faces([path])
         remove_objects(objects)
         settings = rules.settings_for(path)
-        hand, _ = rule_labels(table, rules, settings.default_part)
+        hand, _ = rule_labels(table, rules, settings.default_part, path, settings.up)
         lab = infer(table)
         merge = np.vectorize(lambda p: MERGE.get(p, p), otypes=[object])
         h, auto = merge(hand), merge(lab.labels)

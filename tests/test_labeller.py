@@ -225,3 +225,24 @@ def test_wheel_files_modelled_at_the_origin_go_into_the_arches_and_are_mirrored(
     flat = _table([(_body_with_arches(axles=()), "body"), (wheel, "tire")])
     with pytest.raises(RulesError, match="no front and back wheel arch"):
         place_wheel_files(flat, np.repeat([0, 1], [len(flat) - len(wheel), len(wheel)]), names[:2], "+X", "+Z")
+
+
+def test_rules_limited_to_files_and_heights(tmp_path):
+    # two grey faces of one palette swatch, one low (a sill), one high (a roof)
+    tris = np.array([[[0, 0, 0.0], [1, 0, 0.0], [0, 1, 0.1]], [[0, 0, 0.9], [1, 0, 0.9], [0, 1, 1.0]]])
+    table = FaceTable(tris=tris, normals=np.repeat(face_normals(tris)[:, None], 3, axis=1),
+                      objects=np.array(["body", "body"], object), materials=np.array(["m", "m"], object),
+                      uv=np.array([[0.45, 0.3], [0.45, 0.3]]), colour=np.full((2, 3), 0.3), textured=np.ones(2, bool),
+                      alpha=np.ones(2), transmission=np.zeros(2), emission=np.zeros(2))
+    path = tmp_path / "r.toml"
+    path.write_text('[[rule]]\nmatch = "palette"\nfiles = ["police*.glb"]\nheight = [0.5, 1.0]\nuv_min = [0.4, 0.25]\n'
+                    'uv_max = [0.5, 0.5]\npart = "body"\n'
+                    '[[rule]]\nmatch = "palette"\nuv_min = [0.4, 0.25]\nuv_max = [0.5, 0.5]\npart = "bumpers"\n')
+    rules = load_rules(path)
+    assert list(rule_labels(table, rules, "body", "police.glb")[0]) == ["bumpers", "body"]
+    assert list(rule_labels(table, rules, "body", "sedan.glb")[0]) == ["bumpers", "bumpers"]
+    # height along the model's own up axis: upside down (-Z up), the first face is the high one
+    assert list(rule_labels(table, rules, "body", "police.glb", up="-Z")[0]) == ["body", "bumpers"]
+    path.write_text('[[rule]]\nmatch = "object"\npattern = "x"\nheight = [0.6, 0.2]\npart = "body"\n')
+    with pytest.raises(Exception, match=r"rule #1: height must be \[low, high\]"):
+        load_rules(path)

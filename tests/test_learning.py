@@ -13,6 +13,7 @@ import torch
 
 from train.config import load_config
 from train.data import CachedTensors, IntrinsicsData, RealImages, flip_stack
+from train.losses import chroma_loss
 from train.model import build_model
 from train.probe import ProbeSet, decomposition_scores, evaluate_probe, input_sensitivity, training_means
 from train.sanity import LIGHT, shade_network, srgb_decode, srgb_encode
@@ -99,7 +100,7 @@ def test_evaluate_probe_reports_every_figure_and_restores_train_mode():
     assert model.training
     for key in ("normal_deg", "albedo_l1", "reflection_l1", "normal_corr_x", "normal_corr_y", "normal_corr_z",
                 "const_normal_deg", "const_albedo_l1", "const_reflection_l1", "render_l1", "r_sensitivity",
-                "r_colour_corr"):
+                "r_colour_corr", "h_colour_corr"):
         assert np.isfinite(figs[f"probe/{key}"]), key
 
 
@@ -175,6 +176,26 @@ def test_generator_loss_is_the_weighted_sum_of_its_terms():
     terms = model.loss_terms(out)
     assert float(total) == pytest.approx(sum(w * float(v) for w, v in terms.values()), rel=1e-5)
     assert set(logs) == set(terms) | {"G/total"}
+
+
+def test_chroma_loss_ignores_brightness_and_sees_a_hue_change():
+    g = torch.Generator().manual_seed(0)
+    albedo = torch.rand(2, 3, 16, 32, generator=g) * 2 - 1
+    mask = torch.zeros(2, 1, 16, 32)
+    mask[:, :, 4:12, 8:24] = 1
+    assert float(chroma_loss(albedo, albedo, mask)) == 0.0
+    darker = (albedo + 1) * 0.5 * 0.8 * 2 - 1  # shading dims the car, its colour stays
+    rotated = albedo[:, [1, 2, 0]]  # the same brightness, another hue
+    assert float(chroma_loss(darker, albedo, mask)) < 0.2 * float(chroma_loss(rotated, albedo, mask))
+    outside = albedo.clone()
+    outside[:, :, :4] = -albedo[:, :, :4]  # the background never counts
+    assert float(chroma_loss(outside, albedo, mask)) == 0.0
+    # the term joins the objective only when asked for, weighted as asked
+    m, i = torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1
+    assert "G/chroma" not in build_model(load_config("cpu-small", tiny_overrides())).loss_terms(
+        build_model(load_config("cpu-small", tiny_overrides())).forward_all(m, i))
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.w_chroma=3"]))
+    assert model.loss_terms(model.forward_all(m, i))["G/chroma"][0] == 3.0
 
 
 def test_cache_gives_the_decoded_tensors_and_rebuilds_when_the_data_changes(data, tmp_path):

@@ -89,6 +89,11 @@ class LossConfig:
     # from both. 1 = the paper; 0 (measured, README "The cpu comparison on a GPU"): the GAN
     # gradient through the reconstructions fought the cycles and cost ~8 degrees of normals.
     w_adv_rec: float = 0.0
+    # Not in the paper: R(M_s)'s chromaticity on the car follows its albedo input's, over 4x4
+    # cells (train.losses.chroma_loss), the role CycleGAN's identity loss plays for colour
+    # composition. The cycles alone are satisfied by any colour bijection the discriminators
+    # cannot see (a hue rotation of random paints): R painted every car one colour. 0 = the paper.
+    w_chroma: float = 0.0
 
 
 @dataclass
@@ -300,7 +305,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.normal_threshold", "loss.cycle_noise",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):

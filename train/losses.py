@@ -45,6 +45,30 @@ def normal_length_loss(normals: torch.Tensor, threshold: float, mask: torch.Tens
     return ((1.0 - length).abs() * weight).sum() / weight.sum().clamp_min(1.0)
 
 
+def chroma_loss(image: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, block: int = 4,
+                eps: float = 0.05) -> torch.Tensor:
+    """Mean L1 distance between the chromaticities (colour / sum of channels) of `image` and
+    `albedo` averaged over `block` x `block` cells, on the cells `mask` (N, 1, H, W) mostly covers.
+
+    Both in network space ([-1, 1]). Chromaticity ignores brightness, so shading may darken the
+    car; cell means let reflections and highlights vary within a cell. `eps` keeps dark cells
+    (near-black paint, deep shadow) from dominating.
+    """
+    def cells(x: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(x.float(), block, ceil_mode=True)
+
+    w = cells(mask)
+    on = (w > 0.5).float()
+    img = cells((image.float() + 1.0) * 0.5 * mask) / w.clamp_min(1e-6)
+    alb = cells((albedo.float() + 1.0) * 0.5 * mask) / w.clamp_min(1e-6)
+
+    def chroma(x: torch.Tensor) -> torch.Tensor:
+        return x / (x.sum(1, keepdim=True) + eps)
+
+    dist = (chroma(img) - chroma(alb)).abs().sum(1, keepdim=True)
+    return (dist * on).sum() / on.sum().clamp_min(1.0)
+
+
 def finish_logs(total: torch.Tensor, logs: dict[str, torch.Tensor], prefix: str) -> tuple[torch.Tensor, dict[str, float]]:
     """Add `<prefix>/total` and return the loss with its logs as plain floats."""
     logs[f"{prefix}/total"] = total

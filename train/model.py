@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
+from .losses import chroma_loss, cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
 from .networks import Decomposer, MultiscaleDiscriminator, init_weights, make_renderer_net
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
@@ -138,6 +138,9 @@ class IntrinsicAutoencoder(nn.Module):
             norm = self._normal_length(out)
             if norm is not None:
                 terms["G/normal_length"] = (lc.w_norm, norm)
+        if lc.w_chroma and "fake_I" in out and "A" in self.inputs:
+            a = out["M_s"][:, CHANNELS["A"]]
+            terms["G/chroma"] = (lc.w_chroma, chroma_loss(out["fake_I"], a, object_mask(out["M_s"])))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))

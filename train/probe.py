@@ -148,6 +148,8 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
     out[f"{PROBE_PREFIX}render_l1"] = float(_per_sample_mean(err, on).mean())
     out[f"{PROBE_PREFIX}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
     out[f"{PROBE_PREFIX}r_colour_corr"] = colour_correlation(ren, probe.images, on)
+    # H: does its albedo follow each car's paint (1), or give every car one colour (0)?
+    out[f"{PROBE_PREFIX}h_colour_corr"] = colour_correlation(pred[:, 3:6], probe.maps[:, 3:6], on)
     return out
 
 
@@ -208,6 +210,7 @@ def probe_plot(rows: list[dict], title: str = "") -> bytes | None:
         axes[2].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
     axes[2].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
     axes[2].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
+    axes[2].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3")
     axes[2].set_ylim(-0.2, 1.3)
     for ax, what in zip(axes, ("H: normals", "H: albedo, reflection; R", "agreement")):
         ax.set_xlabel("step")

@@ -59,7 +59,7 @@ def import_model(path: str | Path, rules: Rules) -> ImportedModel:
         return _normalise(files[0], settings, table.tris, table.normals, lab.labels, int((lab.evidence == "default").sum()))
     settings = rules.settings_for(files[0])
     table, _ = read_car(files, settings.forward, settings.up)
-    labels, rule_hits = rule_labels(table, rules, settings.default_part)
+    labels, rule_hits = rule_labels(table, rules, settings.default_part, files[0], settings.up)
     if sum(n for idx, n in rule_hits.items() if idx) == 0:
         raise RulesError(f"{path}: no rule of {rules.path} matched any face (all {len(labels)} faces would be "
                          f"'{settings.default_part}'); check the object names, materials or palette ranges")

@@ -20,6 +20,8 @@ length = 5.0
 [[rule]]
 match = "palette"     # "object", "material" or "palette"
 objects = ["body*"]   # optional: only faces of these objects (glob on names)
+# files = ["police.glb"]  # optional: only in these model files (glob on file names)
+# height = [0.0, 0.35]    # optional: face centre between these fractions of the model's height (0 = lowest point)
 uv_min = [0.0625, 0.0]  # palette: a UV box ...
 uv_max = [0.125, 0.25]
 # color_min = [0.8, 0.85, 0.9]  # ... and/or an sRGB colour range of the texture under the face
@@ -44,7 +46,7 @@ MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 SPLIT_PARTS = {"windows": ("windshield", "window_side", "window_rear"), "bumpers": ("bumper_front", "bumper_rear")}
 _MODEL_KEYS = {"forward", "up", "length", "default_part", "category"}
-_RULE_KEYS = {"match", "pattern", "objects", "part", "uv_min", "uv_max", "color_min", "color_max"}
+_RULE_KEYS = {"match", "pattern", "objects", "files", "height", "part", "uv_min", "uv_max", "color_min", "color_max"}
 
 
 class RulesError(ValueError):
@@ -62,6 +64,8 @@ class Rule:
     uv_max: tuple[float, float] | None = None
     color_min: tuple[float, float, float] | None = None
     color_max: tuple[float, float, float] | None = None
+    files: tuple[str, ...] | None = None
+    height: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -180,7 +184,12 @@ def load_rules(path: str | Path) -> Rules:
             uv_max=_vec(r["uv_max"], 2, where + " uv_max") if "uv_max" in r else None,
             color_min=_vec(r["color_min"], 3, where + " color_min") if "color_min" in r else None,
             color_max=_vec(r["color_max"], 3, where + " color_max") if "color_max" in r else None,
+            files=_globs(r["files"], where + " files") if "files" in r else None,
+            height=_vec(r["height"], 2, where + " height") if "height" in r else None,
         )
+        if rule.height is not None and not 0 <= rule.height[0] < rule.height[1] <= 1:
+            raise RulesError(f"{where}: height must be [low, high] fractions of the model's height with "
+                             f"0 <= low < high <= 1, got {list(rule.height)}")
         if match == "palette":
             has_uv = rule.uv_min is not None and rule.uv_max is not None
             has_col = rule.color_min is not None and rule.color_max is not None
@@ -192,11 +201,17 @@ def load_rules(path: str | Path) -> Rules:
     return Rules(path, model, files, rules)
 
 
-def face_part(rules: Rules, obj: str, material: str | None, uv, colour) -> Rule | None:
-    """The first rule that matches a face (object base name, material, UV centroid, texture sRGB)."""
+def face_part(rules: Rules, obj: str, material: str | None, uv, colour, model: str | None = None,
+              height: float | None = None) -> Rule | None:
+    """The first rule that matches a face (object base name, material, UV centroid, texture sRGB,
+    model file name, height as a fraction of the model's)."""
     obj = base_name(obj)
     for rule in rules.rules:
         if rule.objects is not None and not any(fnmatch.fnmatchcase(obj, g) for g in rule.objects):
+            continue
+        if rule.files is not None and (model is None or not any(fnmatch.fnmatchcase(model, g) for g in rule.files)):
+            continue
+        if rule.height is not None and (height is None or not rule.height[0] <= height <= rule.height[1]):
             continue
         if rule.match == "object":
             if fnmatch.fnmatchcase(obj, rule.pattern):
@@ -215,18 +230,27 @@ def face_part(rules: Rules, obj: str, material: str | None, uv, colour) -> Rule 
     return None
 
 
-def rule_labels(table, rules: Rules, default_part: str) -> tuple[np.ndarray, Counter]:
+def rule_labels(table, rules: Rules, default_part: str, model: str | Path | None = None,
+                up: str = "+Z") -> tuple[np.ndarray, Counter]:
     """The part of every face by the rules' first match (default part where none matches), and
-    how many faces each rule took (index 0: unmatched)."""
+    how many faces each rule took (index 0: unmatched). `model` is the model's file (rules with
+    `files`), `up` its up axis in the table's frame (rules with `height`)."""
     labels = np.empty(len(table), dtype=object)
     hits: Counter = Counter()
     cache: dict[tuple, object] = {}
+    name = Path(model).name if model is not None else None
+    heights = None
+    if any(r.height is not None for r in rules.rules) and len(table):
+        z = table.tris[:, :, "XYZ".index(up[1])] * (1.0 if up[0] == "+" else -1.0)
+        lo, hi = z.min(), z.max()
+        heights = (z.mean(1) - lo) / max(hi - lo, 1e-9)
     for t in range(len(table)):
         uv = None if not np.isfinite(table.uv[t, 0]) else (float(table.uv[t, 0]), float(table.uv[t, 1]))
         colour = tuple(float(x) for x in table.colour[t]) if table.textured[t] else None
-        key = (table.objects[t], table.materials[t], uv, colour)
+        h = None if heights is None else float(heights[t])
+        key = (table.objects[t], table.materials[t], uv, colour, h)
         if key not in cache:
-            cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour)
+            cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour, name, h)
         rule = cache[key]
         hits[rule.index if rule else 0] += 1
         labels[t] = rule.part if rule else default_part
