@@ -2,7 +2,8 @@
 
   python bench/plot_comparison.py eval/results/cpu_gpu --out eval/results/cpu_gpu_curves.png
 Prints a Markdown table (the last probe row of every run, mean over seeds with the spread) and
-draws normals, albedo and reflection against the step, one colour per model, a line per seed.
+draws normals, albedo and reflection (and, where every curve has them, R's and H's colour
+correlations) against the step, one colour per model, a line per seed.
 """
 from __future__ import annotations
 
@@ -26,8 +27,8 @@ def load(folder: Path) -> dict[str, dict[int, list[dict]]]:
 
 
 def table(runs: dict[str, dict[int, list[dict]]], order: list[str]) -> str:
-    lines = ["| model | seeds | step | normals (deg) | corr x / y / z (mean) | albedo L1 | reflection L1 | R sensitivity |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| model | seeds | step | normals (deg) | corr x / y / z (mean) | albedo L1 | reflection L1 | R sensitivity "
+             "| R colour corr. | H albedo colour corr. |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name in order:
         seeds = runs[name]
         last = {s: rows[-1] for s, rows in sorted(seeds.items())}
@@ -35,11 +36,14 @@ def table(runs: dict[str, dict[int, list[dict]]], order: list[str]) -> str:
         col = lambda k: " / ".join(f"{r[k]:.1f}" for r in last.values())  # noqa: E731
         corr = " / ".join(f"{sum(r[f'probe/normal_corr_{a}'] for r in last.values()) / len(last):.2f}" for a in "xyz")
         sens = " / ".join(f"{r['probe/r_sensitivity']:.2f}" for r in last.values())
+        colour = {k: " / ".join(f"{r[k]:.2f}" if k in r else "-" for r in last.values())  # older curves lack them
+                  for k in ("probe/r_colour_corr", "probe/h_colour_corr")}
         lines.append(f"| {name} | {', '.join(map(str, last))} | {'-'.join(map(str, (steps[0], steps[-1])[:len(set(steps))]))} "
-                     f"| {col(METRICS[0][0])} | {corr} | {col(METRICS[1][0])} | {col(METRICS[2][0])} | {sens} |")
+                     f"| {col(METRICS[0][0])} | {corr} | {col(METRICS[1][0])} | {col(METRICS[2][0])} | {sens} "
+                     f"| {colour['probe/r_colour_corr']} | {colour['probe/h_colour_corr']} |")
     any_row = next(iter(next(iter(runs.values())).values()))[-1]
     lines.append(f"| constant predictor | | | {any_row[METRICS[0][1]]:.1f} | | {any_row[METRICS[1][1]]:.1f} | "
-                 f"{any_row[METRICS[2][1]]:.1f} | |")
+                 f"{any_row[METRICS[2][1]]:.1f} | | | |")
     return "\n".join(lines)
 
 
@@ -58,14 +62,18 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5.2))
-    for ax, (key, const, title) in zip(axes, METRICS):
+    colour = all("probe/r_colour_corr" in rows[0] for seeds in runs.values() for rows in seeds.values())
+    panels = list(METRICS) + ([("probe/r_colour_corr", None, "R colour correlation"),
+                               ("probe/h_colour_corr", None, "H albedo colour correlation")] if colour else [])
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.7 * len(panels), 5.2))
+    for ax, (key, const, title) in zip(axes, panels):
         for c, name in enumerate(order):
             for j, (seed, rows) in enumerate(sorted(runs[name].items())):
                 ax.plot([r["step"] for r in rows], [r[key] for r in rows], color=f"C{c % 10}",
                         ls=("-", "--", ":")[j % 3] if name not in ("oracle",) else "-", lw=1.4,
                         label=name if j == 0 else None)
-        ax.axhline(next(iter(runs[order[0]].values()))[-1][const], color="k", ls="--", lw=1, label="constant")
+        if const:
+            ax.axhline(next(iter(runs[order[0]].values()))[-1][const], color="k", ls="--", lw=1, label="constant")
         ax.set_title(title)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)

@@ -190,12 +190,13 @@ def test_chroma_loss_ignores_brightness_and_sees_a_hue_change():
     outside = albedo.clone()
     outside[:, :, :4] = -albedo[:, :, :4]  # the background never counts
     assert float(chroma_loss(outside, albedo, mask)) == 0.0
-    # the term joins the objective only when asked for, weighted as asked
+    # a default term weighted as configured; not in the paper's objective, nor without albedo input
     m, i = torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1
-    assert "G/chroma" not in build_model(load_config("cpu-small", tiny_overrides())).loss_terms(
-        build_model(load_config("cpu-small", tiny_overrides())).forward_all(m, i))
-    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.w_chroma=3"]))
-    assert model.loss_terms(model.forward_all(m, i))["G/chroma"][0] == 3.0
+    for sets, weight in (([], 10.0), (["loss.w_chroma=3"], 3.0), (["loss.w_chroma=0"], None), (["model.inputs=NF"], None)):
+        model = build_model(load_config("cpu-small", tiny_overrides() + sets))
+        assert model.loss_terms(model.forward_all(m, i)).get("G/chroma", (None,))[0] == weight, sets
+    paper = build_model(load_config("paper", tiny_overrides()))
+    assert "G/chroma" not in paper.loss_terms(paper.forward_all(m, i))
 
 
 def test_cache_gives_the_decoded_tensors_and_rebuilds_when_the_data_changes(data, tmp_path):
