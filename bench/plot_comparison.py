@@ -2,7 +2,7 @@
 
   python bench/plot_comparison.py eval/results/cpu_gpu --out eval/results/cpu_gpu_curves.png
 Prints a Markdown table (the last probe row of every run, mean over seeds with the spread) and
-draws normals, albedo and reflection (and, where every curve has them, R's and H's colour
+draws normals, albedo and reflection (and, for the curves that have them, R's and H's colour
 correlations) against the step, one colour per model, a line per seed.
 """
 from __future__ import annotations
@@ -62,13 +62,14 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colour = all("probe/r_colour_corr" in rows[0] for seeds in runs.values() for rows in seeds.values())
+    colour = any("probe/r_colour_corr" in rows[-1] for seeds in runs.values() for rows in seeds.values())
     panels = list(METRICS) + ([("probe/r_colour_corr", None, "R colour correlation"),
                                ("probe/h_colour_corr", None, "H albedo colour correlation")] if colour else [])
     fig, axes = plt.subplots(1, len(panels), figsize=(5.7 * len(panels), 5.2))
     for ax, (key, const, title) in zip(axes, panels):
         for c, name in enumerate(order):
             for j, (seed, rows) in enumerate(sorted(runs[name].items())):
+                rows = [r for r in rows if key in r]  # older curves lack the colour figures
                 ax.plot([r["step"] for r in rows], [r[key] for r in rows], color=f"C{c % 10}",
                         ls=("-", "--", ":")[j % 3] if name not in ("oracle",) else "-", lw=1.4,
                         label=name if j == 0 else None)
