@@ -65,6 +65,14 @@ def pack(args) -> None:
     print(f"{args.out}: M_s {tuple(ms.shape)}, real {tuple(xr.shape)}, probe {tuple(probe.images.shape)}")
 
 
+def unpack(a: np.ndarray, mask: bool = False) -> np.ndarray:
+    """A packed array as float32: uint8 packs hold network space [-1, 1] (masks [0, 1]) in 255
+    steps, float16 packs the values themselves."""
+    if a.dtype == np.uint8:
+        return a.astype(np.float32) / 255.0 if mask else a.astype(np.float32) / 127.5 - 1.0
+    return a.astype(np.float32)
+
+
 def run(args) -> None:
     import torch
 
@@ -77,11 +85,8 @@ def run(args) -> None:
 
     dev = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     z = np.load(args.data)
-    def dec(k: str) -> torch.Tensor:  # uint8 packs: network space [-1, 1] in 255 steps, masks [0, 1]
-        a = z[k]
-        if a.dtype == np.uint8:
-            a = a.astype(np.float32) / 255.0 if k == "PM" else a.astype(np.float32) / 127.5 - 1.0
-        return torch.from_numpy(a.astype(np.float32)).to(dev)
+    def dec(k: str) -> torch.Tensor:
+        return torch.from_numpy(unpack(z[k], mask=k == "PM")).to(dev)
 
     t = {k: dec(k) for k in ("MS", "XR", "YR", "PX", "PY", "PM")}
     h, w = t["MS"].shape[2:]

@@ -32,17 +32,14 @@ def main() -> None:
     from safetensors.torch import load_file
 
     from blender_gen.dataset import save_png
+    from bench.objective_sweep import unpack
     from train.config import load_config
     from train.loop import to_display
     from train.model import build_model
 
     torch.set_num_threads(1)
     z = np.load(a.data)
-    def dec(k: str) -> torch.Tensor:  # uint8 packs store network space in 255 steps, float16 packs as is
-        x = z[k][a.samples].astype(np.float32)
-        return torch.from_numpy(x / 127.5 - 1.0 if z[k].dtype == np.uint8 else x)
-
-    maps, images = dec("PY"), dec("PX")
+    maps, images = (torch.from_numpy(unpack(z[k][a.samples])) for k in ("PY", "PX"))
     h, w = maps.shape[2:]
     columns = [maps[:, 3:6], maps[:, 6:9]]
     for spec in a.run:
