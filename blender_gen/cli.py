@@ -303,7 +303,7 @@ def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: i
 @click.option("--out", required=True, type=click.Path(path_type=Path),
               help="RULES.toml for one model; a folder (NAME.toml each) for several.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Part-colour PNG (side, front, top) for one model; with several, NAME.png in --out.")
+              help="Part-colour PNG (side, front, top, bottom) for one model; with several, NAME.png in --out.")
 @click.option("--length", default=4.5, show_default=True, type=click.FloatRange(0.5, 30),
               help="Bumper-to-bumper length in metres written to the rules.")
 @click.option("--forward", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
@@ -358,7 +358,8 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         with atomic_target(rules_path) as tmp:
             Path(tmp).write_text(text, encoding="utf-8")
         try:
-            again, _ = rule_labels(table, load_rules(rules_path), "body")
+            # as the importer applies them: the model's first file and its up axis (height, facing)
+            again, _ = rule_labels(table, load_rules(rules_path), "body", token.split("+")[0], lab.up)
         except RulesError as exc:
             _fail(f"{rules_path}: the proposed rules do not load ({exc}); please report this model")
         click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category} -> {rules_path}")

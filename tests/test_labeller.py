@@ -46,7 +46,8 @@ def _box(lo, hi, colours) -> list[tuple[np.ndarray, tuple]]:
 def synthetic_car(flip: bool = False) -> tuple[FaceTable, dict[str, np.ndarray]]:
     """A car of boxes facing +X (or -X with `flip`): blue paint, a narrower cabin whose sides are
     glass, four wheels named wheel_* (dark tread, light hub face), red lamps at the back and
-    yellow ones at the front. Returns the table and the true part of every face."""
+    yellow ones at the front; the body's floor is painted like the body but is its underside.
+    Returns the table and the true part of every face."""
     faces: list[tuple[np.ndarray, tuple, str, str]] = []
     add = lambda tris, obj, part_of: faces.extend((t, sw, obj, part_of(sw)) for t, sw in tris)  # noqa: E731
     add(_box((-2, -0.9, 0.3), (2, 0.9, 1.0), lambda a, s: PAINT), "body", lambda sw: "body")
@@ -69,7 +70,9 @@ def synthetic_car(flip: bool = False) -> tuple[FaceTable, dict[str, np.ndarray]]
                       objects=np.array([f[2] for f in faces], dtype=object), materials=np.full(n, "palette", dtype=object),
                       uv=np.array([f[1][1] for f in faces], float) + 0.01, colour=np.array([f[1][0] for f in faces], float),
                       textured=np.ones(n, bool), alpha=np.ones(n), transmission=np.zeros(n), emission=np.zeros(n))
-    return table, {"parts": np.array([f[3] for f in faces], dtype=object)}
+    parts = np.array([f[3] for f in faces], dtype=object)
+    parts[(table.objects == "body") & (fn[:, 2] < -0.9) & (tris[:, :, 2].mean(1) < 0.5)] = "underbody"
+    return table, {"parts": parts}
 
 
 @pytest.mark.parametrize("flip", [False, True])
@@ -78,8 +81,9 @@ def test_infer_finds_orientation_glass_wheels_and_lamps(flip):
     lab = infer(table)
     assert (lab.up, lab.forward) == ("+Z", "-X" if flip else "+X")
     areas = table.areas()
-    for part in ("windows", "tyres", "rims", "tail_lights", "headlights", "body"):
+    for part in ("windows", "tyres", "rims", "tail_lights", "headlights", "body", "underbody"):
         sel = truth["parts"] == part
+        assert sel.any(), part
         assert agreement(lab.labels[sel], truth["parts"][sel], areas[sel]) > 0.95, part
     assert set(lab.evidence[truth["parts"] == "tyres"]) == {"name"}
     assert not lab.warnings
@@ -245,4 +249,24 @@ def test_rules_limited_to_files_and_heights(tmp_path):
     assert list(rule_labels(table, rules, "body", "police.glb", up="-Z")[0]) == ["body", "bumpers"]
     path.write_text('[[rule]]\nmatch = "object"\npattern = "x"\nheight = [0.6, 0.2]\npart = "body"\n')
     with pytest.raises(Exception, match=r"rule #1: height must be \[low, high\]"):
+        load_rules(path)
+
+
+def test_rules_limited_by_facing(tmp_path):
+    # a floor face (low, looking down), a roof face (high, up) and a door face (sideways), one swatch
+    tris = np.array([[[0, 0, 0.1], [0, 1, 0.1], [1, 0, 0.1]], [[0, 0, 1.0], [1, 0, 1.0], [0, 1, 1.0]],
+                     [[0, 0, 0.2], [1, 0, 0.2], [1, 0, 0.8]]])
+    table = FaceTable(tris=tris, normals=np.repeat(face_normals(tris)[:, None], 3, axis=1),
+                      objects=np.array(["body"] * 3, object), materials=np.array(["m"] * 3, object),
+                      uv=np.full((3, 2), 0.3), colour=np.full((3, 3), 0.3), textured=np.ones(3, bool),
+                      alpha=np.ones(3), transmission=np.zeros(3), emission=np.zeros(3))
+    path = tmp_path / "r.toml"
+    path.write_text('[[rule]]\nmatch = "object"\npattern = "*"\nheight = [0.0, 0.35]\nfacing = "down"\npart = "underbody"\n'
+                    '[[rule]]\nmatch = "object"\npattern = "*"\nfacing = "side"\npart = "bumpers"\n')
+    rules = load_rules(path)
+    assert list(rule_labels(table, rules, "body")[0]) == ["underbody", "body", "bumpers"]
+    # facing and height are along the model's own up axis: upside down, the roof is the low face looking down
+    assert list(rule_labels(table, rules, "body", up="-Z")[0]) == ["body", "underbody", "bumpers"]
+    path.write_text('[[rule]]\nmatch = "object"\npattern = "*"\nfacing = "below"\npart = "body"\n')
+    with pytest.raises(Exception, match=r"rule #1: facing must be one of \['up', 'down', 'side'\], got 'below'"):
         load_rules(path)

@@ -5,7 +5,8 @@ Evidence, strongest first, each face keeping the first that decides it:
   bumper, grille, interior);
 - material: transmission or alpha below 1 -> glass; emission -> a light (front or rear by position);
 - geometry: wheels are the parts of the model in the four lower corners (connected pieces low
-  beside the axles), tyres their dark or outer faces, rims the rest;
+  beside the axles), tyres their dark or outer faces, rims the rest; faces looking at the ground
+  from the lower third of the car are the underbody;
 - colour: faces are grouped by their texture/base colour; a group other than the paint that lies
   in the greenhouse band and faces sideways, forwards or backwards is glass; bright white/yellow
   groups at the front end are headlights, red ones at the rear tail lights, amber ones indicators;
@@ -22,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .rules import AXES
+from .rules import AXES, face_normals
 
-LABELLER_VERSION = 1
+LABELLER_VERSION = 2
 
 
 @dataclass
@@ -68,7 +69,7 @@ NAME_HINTS: list[tuple[tuple[str, ...], str]] = [  # (globs on lower-case object
 @dataclass
 class Labelling:
     labels: np.ndarray  # (n,) part per face ("windows" and "bumpers" are split later by the importer)
-    evidence: np.ndarray  # (n,) what decided it: name, material, wheel, colour, default
+    evidence: np.ndarray  # (n,) what decided it: name, material, wheel, colour, geometry (floor), default
     forward: str
     up: str
     category: str
@@ -88,11 +89,6 @@ def _axis_vec(axis: str) -> np.ndarray:
     v = np.zeros(3)
     v["XYZ".index(axis[1])] = 1.0 if axis[0] == "+" else -1.0
     return v
-
-
-def face_normals(tris: np.ndarray) -> np.ndarray:
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def infer_up(tris: np.ndarray, areas: np.ndarray) -> str:
@@ -337,6 +333,11 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
                 decide(sel, "underbody", "colour")
             elif gs < 0.3 and gv < 0.65 and zc < 0.5:
                 decide(sel, "bumpers", "colour")  # grey plastic on the lower half: bumpers and sills
+    # 5. the floor: faces that look at the ground from the lower third of the car are its underside
+    # whatever their colour (a floor pan often shares the paint's or the bumpers' texture swatch);
+    # decided after the colour clusters, which it would otherwise skew toward the car's top
+    floor = np.isin(labels, ["", "bumpers"]) & (fn[:, 2] < -0.7071) & (c[:, 2] < FLOOR_HEIGHT[1])
+    labels[floor], evidence[floor] = "underbody", "geometry"
     decide(labels == "", "body", "default")
     for part in ("windows", "tyres", "headlights", "tail_lights"):
         if not np.isin(labels, [part, "windshield"] if part == "windows" else [part]).any():
@@ -382,6 +383,9 @@ def _fmt(v) -> str:
     return "[" + ", ".join(f"{float(x):.4f}" for x in v) + "]"
 
 
+FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
+
+
 def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, min_share: float = 0.002) -> str:
     """A rules file (TOML text) that reproduces a labelling: an object rule where an object is one
     part, material rules where materials separate its parts, else palette rules (a UV box and a
@@ -393,10 +397,18 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
              "# part-colour preview, edit what is wrong, then use it with --car-rules.", "",
              "[model]", f"forward = {_toml_str(lab.forward)}", f"up = {_toml_str(lab.up)}", f"length = {length}",
              'default_part = "body"', f"category = {_toml_str(lab.category)}", ""]
-    specific, whole = [], []
+    by_name, floor_rule, by_colour, whole = [], [], [], []
+    floor = lab.evidence == "geometry"
+    if floor.any():  # the floor by the labeller's own geometric test: after the rules of parts found by
+        # name, material or wheel shape (a tyre's bottom keeps its part), before the colour rules
+        # (the floor shares a swatch with paint or bumpers)
+        floor_rule.append({"match": "object", "pattern": "*", "objects": sorted(set(table.objects[floor])),
+                           "height": FLOOR_HEIGHT, "facing": "down", "part": "underbody"})
     groups = _colour_groups(table.colour, table.uv, bins=32)
     for obj in sorted(set(table.objects)):
-        in_obj = table.objects == obj
+        in_obj = (table.objects == obj) & ~floor
+        if not in_obj.any():
+            continue
         parts = Counter()
         for p, a in zip(lab.labels[in_obj], areas[in_obj]):
             parts[p] += a
@@ -408,7 +420,7 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
             mats = set(table.materials[sel])
             if all(m for m in mats) and not (in_obj & ~sel & np.isin(table.materials, list(mats))).any():
                 for m in sorted(mats):
-                    specific.append({"match": "material", "pattern": m, "objects": [obj], "part": part})
+                    by_name.append({"match": "material", "pattern": m, "objects": [obj], "part": part})
                 continue
             for g in np.unique(groups[sel]):
                 gs = sel & (groups == g)
@@ -419,9 +431,11 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
                         "uv_min": uv.min(0) - 1e-4, "uv_max": uv.max(0) + 1e-4}
                 if table.textured[gs].all():
                     rule["color_min"], rule["color_max"] = col.min(0) - 1e-3, col.max(0) + 1e-3
-                specific.append(rule)
+                strong = np.isin(lab.evidence[gs], ["name", "material", "wheel"]).mean() > 0.5
+                (by_name if strong else by_colour).append(rule)
         if main != "body":
             whole.append({"match": "object", "pattern": obj, "part": main})
+    specific = by_name + floor_rule + by_colour
     for r in specific + whole:
         lines.append("[[rule]]")
         lines.append(f"match = {_toml_str(r['match'])}")
@@ -429,6 +443,9 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
             lines.append(f"pattern = {_toml_str(r['pattern'])}")
         if "objects" in r:
             lines.append("objects = [" + ", ".join(_toml_str(o) for o in r["objects"]) + "]")
+        if "facing" in r:
+            lines.append(f"height = {_fmt(r['height'])}")
+            lines.append(f"facing = {_toml_str(r['facing'])}")
         for k in ("uv_min", "uv_max", "color_min", "color_max"):
             if k in r:
                 lines.append(f"{k} = {_fmt(r[k])}")
@@ -449,7 +466,7 @@ PART_COLOURS = {
 
 
 def preview(table, labels: np.ndarray, forward: str, up: str, out, title: str = "") -> None:
-    """Part colours in side, front and top views (matplotlib, painter's order): a PNG to check
+    """Part colours in side, front, top and bottom views (matplotlib, painter's order): a PNG to check
     a labelling at a glance."""
     import matplotlib
 
@@ -460,13 +477,15 @@ def preview(table, labels: np.ndarray, forward: str, up: str, out, title: str = 
 
     rot = _frame(table.tris, forward, up)
     pts = table.tris @ rot.T  # car frame: x forward, y left, z up
-    views = (("left side", 0, 2, 1, 1), ("front", 1, 2, 0, 1), ("top", 0, 1, 2, 1))
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [2.2, 1, 2.2]})
+    views = (("left side", 0, 2, 1, 1), ("front", 1, 2, 0, 1), ("top", 0, 1, 2, 1), ("bottom", 0, 1, 2, -1))
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.2), gridspec_kw={"width_ratios": [2.2, 1, 2.2, 2.2]})
     for ax, (name, a, b, depth, sign) in zip(axes, views):
         order = np.argsort(sign * pts[:, :, depth].mean(1))  # far faces first
         polys = pts[order][:, :, [a, b]]
         if name == "front":
             polys = polys * np.array([-1, 1])  # seen from the front, the car's left is on the right
+        elif name == "bottom":
+            polys = polys * np.array([1, -1])  # seen from below, the car's left is at the bottom
         cols = [PART_COLOURS.get(p, "#ff00ff") for p in labels[order]]
         ax.add_collection(PolyCollection(polys, facecolors=cols, edgecolors="none"))
         ax.autoscale()

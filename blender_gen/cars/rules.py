@@ -22,6 +22,7 @@ match = "palette"     # "object", "material" or "palette"
 objects = ["body*"]   # optional: only faces of these objects (glob on names)
 # files = ["police.glb"]  # optional: only in these model files (glob on file names)
 # height = [0.0, 0.35]    # optional: face centre between these fractions of the model's height (0 = lowest point)
+# facing = "down"         # optional: "up", "down" (normal within 45 deg of the up axis or its opposite) or "side"
 uv_min = [0.0625, 0.0]  # palette: a UV box ...
 uv_max = [0.125, 0.25]
 # color_min = [0.8, 0.85, 0.9]  # ... and/or an sRGB colour range of the texture under the face
@@ -46,7 +47,7 @@ MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
 AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 SPLIT_PARTS = {"windows": ("windshield", "window_side", "window_rear"), "bumpers": ("bumper_front", "bumper_rear")}
 _MODEL_KEYS = {"forward", "up", "length", "default_part", "category"}
-_RULE_KEYS = {"match", "pattern", "objects", "files", "height", "part", "uv_min", "uv_max", "color_min", "color_max"}
+_RULE_KEYS = {"match", "pattern", "objects", "files", "height", "facing", "part", "uv_min", "uv_max", "color_min", "color_max"}
 
 
 class RulesError(ValueError):
@@ -66,6 +67,21 @@ class Rule:
     color_max: tuple[float, float, float] | None = None
     files: tuple[str, ...] | None = None
     height: tuple[float, float] | None = None
+    facing: str | None = None
+
+
+FACINGS = ("up", "down", "side")
+
+
+def face_normals(tris: np.ndarray) -> np.ndarray:
+    """Unit geometric normals of triangles (n, 3, 3), by their winding."""
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def facing_of(normal_up: float) -> str:
+    """Which way a face looks, from its unit normal's component along the model's up axis."""
+    return "up" if normal_up > 0.7071 else "down" if normal_up < -0.7071 else "side"
 
 
 @dataclass(frozen=True)
@@ -186,7 +202,10 @@ def load_rules(path: str | Path) -> Rules:
             color_max=_vec(r["color_max"], 3, where + " color_max") if "color_max" in r else None,
             files=_globs(r["files"], where + " files") if "files" in r else None,
             height=_vec(r["height"], 2, where + " height") if "height" in r else None,
+            facing=r.get("facing"),
         )
+        if rule.facing is not None and rule.facing not in FACINGS:
+            raise RulesError(f"{where}: facing must be one of {list(FACINGS)}, got {rule.facing!r}")
         if rule.height is not None and not 0 <= rule.height[0] < rule.height[1] <= 1:
             raise RulesError(f"{where}: height must be [low, high] fractions of the model's height with "
                              f"0 <= low < high <= 1, got {list(rule.height)}")
@@ -202,9 +221,9 @@ def load_rules(path: str | Path) -> Rules:
 
 
 def face_part(rules: Rules, obj: str, material: str | None, uv, colour, model: str | None = None,
-              height: float | None = None) -> Rule | None:
+              height: float | None = None, facing: str | None = None) -> Rule | None:
     """The first rule that matches a face (object base name, material, UV centroid, texture sRGB,
-    model file name, height as a fraction of the model's)."""
+    model file name, height as a fraction of the model's, "up"/"down"/"side")."""
     obj = base_name(obj)
     for rule in rules.rules:
         if rule.objects is not None and not any(fnmatch.fnmatchcase(obj, g) for g in rule.objects):
@@ -212,6 +231,8 @@ def face_part(rules: Rules, obj: str, material: str | None, uv, colour, model: s
         if rule.files is not None and (model is None or not any(fnmatch.fnmatchcase(model, g) for g in rule.files)):
             continue
         if rule.height is not None and (height is None or not rule.height[0] <= height <= rule.height[1]):
+            continue
+        if rule.facing is not None and facing != rule.facing:
             continue
         if rule.match == "object":
             if fnmatch.fnmatchcase(obj, rule.pattern):
@@ -234,7 +255,7 @@ def rule_labels(table, rules: Rules, default_part: str, model: str | Path | None
                 up: str = "+Z") -> tuple[np.ndarray, Counter]:
     """The part of every face by the rules' first match (default part where none matches), and
     how many faces each rule took (index 0: unmatched). `model` is the model's file (rules with
-    `files`), `up` its up axis in the table's frame (rules with `height`)."""
+    `files`), `up` its up axis in the table's frame (rules with `height` or `facing`)."""
     labels = np.empty(len(table), dtype=object)
     hits: Counter = Counter()
     cache: dict[tuple, object] = {}
@@ -244,13 +265,18 @@ def rule_labels(table, rules: Rules, default_part: str, model: str | Path | None
         z = table.tris[:, :, "XYZ".index(up[1])] * (1.0 if up[0] == "+" else -1.0)
         lo, hi = z.min(), z.max()
         heights = (z.mean(1) - lo) / max(hi - lo, 1e-9)
+    facings = None
+    if any(r.facing is not None for r in rules.rules) and len(table):
+        sign = 1.0 if up[0] == "+" else -1.0
+        facings = [facing_of(sign * v) for v in face_normals(table.tris)[:, "XYZ".index(up[1])]]
     for t in range(len(table)):
         uv = None if not np.isfinite(table.uv[t, 0]) else (float(table.uv[t, 0]), float(table.uv[t, 1]))
         colour = tuple(float(x) for x in table.colour[t]) if table.textured[t] else None
         h = None if heights is None else float(heights[t])
-        key = (table.objects[t], table.materials[t], uv, colour, h)
+        f = None if facings is None else facings[t]
+        key = (table.objects[t], table.materials[t], uv, colour, h, f)
         if key not in cache:
-            cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour, name, h)
+            cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour, name, h, f)
         rule = cache[key]
         hits[rule.index if rule else 0] += 1
         labels[t] = rule.part if rule else default_part
