@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .rules import AXES, face_normals
+from .rules import AXES, FACING_COS, face_normals
 
 LABELLER_VERSION = 2
+FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
 
 
 @dataclass
@@ -336,7 +337,7 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     # 5. the floor: faces that look at the ground from the lower third of the car are its underside
     # whatever their colour (a floor pan often shares the paint's or the bumpers' texture swatch);
     # decided after the colour clusters, which it would otherwise skew toward the car's top
-    floor = np.isin(labels, ["", "bumpers"]) & (fn[:, 2] < -0.7071) & (c[:, 2] < FLOOR_HEIGHT[1])
+    floor = np.isin(labels, ["", "bumpers"]) & (fn[:, 2] < -FACING_COS) & (c[:, 2] < FLOOR_HEIGHT[1])
     labels[floor], evidence[floor] = "underbody", "geometry"
     decide(labels == "", "body", "default")
     for part in ("windows", "tyres", "headlights", "tail_lights"):
@@ -381,9 +382,6 @@ def _toml_str(s: str) -> str:
 
 def _fmt(v) -> str:
     return "[" + ", ".join(f"{float(x):.4f}" for x in v) + "]"
-
-
-FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
 
 
 def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, min_share: float = 0.002) -> str:
@@ -443,8 +441,9 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
             lines.append(f"pattern = {_toml_str(r['pattern'])}")
         if "objects" in r:
             lines.append("objects = [" + ", ".join(_toml_str(o) for o in r["objects"]) + "]")
-        if "facing" in r:
+        if "height" in r:
             lines.append(f"height = {_fmt(r['height'])}")
+        if "facing" in r:
             lines.append(f"facing = {_toml_str(r['facing'])}")
         for k in ("uv_min", "uv_max", "color_min", "color_max"):
             if k in r:

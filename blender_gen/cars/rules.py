@@ -79,9 +79,13 @@ def face_normals(tris: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def facing_of(normal_up: float) -> str:
-    """Which way a face looks, from its unit normal's component along the model's up axis."""
-    return "up" if normal_up > 0.7071 else "down" if normal_up < -0.7071 else "side"
+FACING_COS = 0.7071  # a face looks up or down when its normal is within 45 deg of the up axis or its opposite
+
+
+def facings_of(normal_up: np.ndarray) -> np.ndarray:
+    """Which way faces look ("up", "down", "side"), from their unit normals' components along the
+    model's up axis."""
+    return np.where(normal_up > FACING_COS, "up", np.where(normal_up < -FACING_COS, "down", "side"))
 
 
 @dataclass(frozen=True)
@@ -260,20 +264,19 @@ def rule_labels(table, rules: Rules, default_part: str, model: str | Path | None
     hits: Counter = Counter()
     cache: dict[tuple, object] = {}
     name = Path(model).name if model is not None else None
-    heights = None
+    axis, sign = "XYZ".index(up[1]), (1.0 if up[0] == "+" else -1.0)
+    heights = facings = None
     if any(r.height is not None for r in rules.rules) and len(table):
-        z = table.tris[:, :, "XYZ".index(up[1])] * (1.0 if up[0] == "+" else -1.0)
+        z = table.tris[:, :, axis] * sign
         lo, hi = z.min(), z.max()
         heights = (z.mean(1) - lo) / max(hi - lo, 1e-9)
-    facings = None
     if any(r.facing is not None for r in rules.rules) and len(table):
-        sign = 1.0 if up[0] == "+" else -1.0
-        facings = [facing_of(sign * v) for v in face_normals(table.tris)[:, "XYZ".index(up[1])]]
+        facings = facings_of(face_normals(table.tris)[:, axis] * sign)
     for t in range(len(table)):
         uv = None if not np.isfinite(table.uv[t, 0]) else (float(table.uv[t, 0]), float(table.uv[t, 1]))
         colour = tuple(float(x) for x in table.colour[t]) if table.textured[t] else None
         h = None if heights is None else float(heights[t])
-        f = None if facings is None else facings[t]
+        f = None if facings is None else str(facings[t])
         key = (table.objects[t], table.materials[t], uv, colour, h, f)
         if key not in cache:
             cache[key] = face_part(rules, table.objects[t], table.materials[t] or None, uv, colour, name, h, f)
