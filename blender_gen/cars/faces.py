@@ -15,8 +15,9 @@ import numpy as np
 
 from ..cli_errors import first_line
 from ..quiet import quiet_stdout
-from .labeller import FaceTable, infer
+from .labeller import FaceTable, infer, named_part
 from .rules import MODEL_SUFFIXES, RulesError, base_name
+from .texsplit import MAX_DEPTH, NAMED_DEPTH, sample, split_by_texture
 from .wheels import place_wheel_files, take
 
 BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
@@ -196,18 +197,24 @@ def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
         me.polygons.foreach_get("loop_start", poly_start)
         poly_total = np.empty(len(me.polygons), np.int32)
         me.polygons.foreach_get("loop_total", poly_total)
+        pos, nrm = co[tri_verts], lnorm[tri_loops]
         # the polygon's UV centroid (as the rules have always used), per triangle
         uv = np.full((n_tri, 2), np.nan)
+        cuv = None
         uv_layer = me.uv_layers.active
         if uv_layer is not None:
             uvs = np.empty(len(me.loops) * 2, np.float32)
             uv_layer.data.foreach_get("uv", uvs)
-            uvs = uvs.reshape(-1, 2)
-            csum = np.concatenate([np.zeros((1, 2)), np.cumsum(uvs, axis=0, dtype=np.float64)])
+            uvs = uvs.reshape(-1, 2).astype(np.float64)
+            cuv = uvs[tri_loops]
+            csum = np.concatenate([np.zeros((1, 2)), np.cumsum(uvs, axis=0)])
             p = tri_poly
             uv = (csum[poly_start[p] + poly_total[p]] - csum[poly_start[p]]) / poly_total[p][:, None]
         infos = [_material_info(m, path) for m in me.materials] or [_material_info(None, path)]
         mi = np.minimum(poly_mat[tri_poly], len(infos) - 1)
+        if cuv is not None:  # textured triangles cut along their texture's edges (texsplit.py)
+            pos, nrm, uv, mi = _cut_textured(pos, nrm, cuv, uv, mi, infos, base_name(obj.name))
+            n_tri = len(pos)
         colour = np.full((n_tri, 3), np.nan)
         textured = np.zeros(n_tri, bool)
         for k, info in enumerate(infos):
@@ -218,13 +225,10 @@ def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
             img = info["image"]
             if img is not None:
                 ok = sel & np.isfinite(uv[:, 0])
-                h, w = img.shape[:2]
-                x = np.minimum(w - 1, ((uv[ok, 0] % 1.0) * w).astype(int))
-                y = np.minimum(h - 1, ((uv[ok, 1] % 1.0) * h).astype(int))
-                colour[ok] = img[y, x]
+                colour[ok] = sample(img, uv[ok])
                 textured[ok] = True
-        rows["tris"].append(co[tri_verts])
-        rows["normals"].append(lnorm[tri_loops])
+        rows["tris"].append(pos)
+        rows["normals"].append(nrm)
         rows["objects"].append(np.full(n_tri, base_name(obj.name), dtype=object))
         rows["materials"].append(np.array([infos[k]["name"] for k in mi], dtype=object))
         rows["uv"].append(uv)
@@ -234,3 +238,32 @@ def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
             rows[key].append(np.array([infos[k][key] for k in mi], dtype=np.float64))
     finally:
         ev.to_mesh_clear()
+
+
+def _cut_textured(pos: np.ndarray, nrm: np.ndarray, cuv: np.ndarray, uv: np.ndarray, mi: np.ndarray,
+                  infos: list[dict], obj_name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A mesh's triangles with the textured ones cut along their texture's edges: positions, corner
+    normals, UV per face (a whole triangle keeps its polygon's UV centroid, a piece its own) and
+    material index, pieces in their source triangle's place."""
+    n_tri = len(pos)
+    textured = np.zeros(n_tri, bool)
+    for k, info in enumerate(infos):
+        if info["image"] is not None:
+            textured |= (mi == k) & np.isfinite(uv[:, 0])
+    plain = np.nonzero(~textured)[0]
+    out_p, out_n, out_uv, out_src = [pos[plain]], [nrm[plain]], [cuv[plain]], [plain]
+    for k, info in enumerate(infos):
+        sel = np.nonzero(textured & (mi == k))[0]
+        if len(sel):
+            # where a name decides the part (wheels, glass) only a little: enough to tell a wheel's
+            # tyre from its rim, not to follow its tread
+            depth = NAMED_DEPTH if named_part(obj_name, info["name"]) else MAX_DEPTH
+            p, n, u, src = split_by_texture(pos[sel], nrm[sel], cuv[sel], info["image"], depth)
+            out_p.append(p), out_n.append(n), out_uv.append(u), out_src.append(sel[src])
+    src = np.concatenate(out_src)
+    order = np.argsort(src, kind="stable")
+    src = src[order]
+    whole = np.bincount(src, minlength=n_tri)[src] == 1
+    piece_uv = np.concatenate(out_uv)[order].mean(1)
+    return (np.concatenate(out_p)[order], np.concatenate(out_n)[order],
+            np.where(whole[:, None], uv[src], piece_uv), mi[src])

@@ -8,10 +8,14 @@ Evidence, strongest first, each face keeping the first that decides it:
   beside the axles), tyres their dark or outer faces, rims the rest; faces looking at the ground
   from the lower third of the car are the underbody;
 - colour: faces are grouped by their texture/base colour; a group other than the paint that lies
-  in the greenhouse band and faces sideways, forwards or backwards is glass; bright white/yellow
+  in the greenhouse band and faces sideways, forwards or backwards is glass (a dark one face by
+  face: one black often paints the windows, the trim and the floor); bright white/yellow
   groups at the front end are headlights, red ones at the rear tail lights, amber ones indicators;
-  very dark groups low on the body are bumpers/underbody.
-Everything else is the painted body. Orientation (up, forward) is inferred when not given: up is
+  very dark groups low on the body are bumpers/underbody, grey ones bumpers unless they are a
+  white or silver paint's baked shading.
+Everything else is the painted body. A textured model's faces arrive cut along their texture's
+edges (`texsplit.py`, done by the reader), so colour decides pieces, not whole large triangles.
+Orientation (up, forward) is inferred when not given: up is
 the axis that most area faces along (roof, hood), forward the end without the red lamps (or,
 failing those, the end whose top is lower: the hood).
 """
@@ -25,8 +29,9 @@ import numpy as np
 
 from .rules import AXES, FACING_COS, face_normals
 
-LABELLER_VERSION = 2
+LABELLER_VERSION = 3
 FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
+DARK_GLASS_V = 0.36  # clusters darker than this are glass face by face in the greenhouse band
 
 
 @dataclass
@@ -65,6 +70,12 @@ NAME_HINTS: list[tuple[tuple[str, ...], str]] = [  # (globs on lower-case object
     (("*exhaust*",), "exhaust"),
     (("*light*", "*lamp*"), "lights"),  # front or rear by position
 ]
+
+
+def named_part(obj: str, material: str) -> bool:
+    """Whether an object or material name alone decides a part (NAME_HINTS)."""
+    name = f"{obj} {material}".lower()
+    return any(fnmatch.fnmatchcase(name, g) for globs, _ in NAME_HINTS for g in globs)
 
 
 @dataclass
@@ -265,16 +276,20 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     wheel = labels == "wheel"
     h, s, v = _hsv(table.colour)
     if wheel.any():
-        # tyre: dark faces of a wheel, or, without colour, those far from the wheel's axis
+        # tyre: dark faces of a wheel and its outer ring (a textured wheel's fan triangles see tyre
+        # and rim at once), rims the rest. One object may hold all four wheels: each corner's
+        # faces are one wheel
         dark = (v < 0.3) & np.isfinite(table.colour[:, 0])
         outer = np.zeros(n, bool)
+        corner = np.sign(c[:, 0]) * 2 + np.sign(c[:, 1])
         for obj in np.unique(table.objects[wheel]):
-            sel = wheel & (table.objects == obj)
-            p = pts.reshape(-1, 3, 3)[sel].mean(1)
-            centre = (p.min(0) + p.max(0)) / 2
-            r = np.hypot(p[:, 0] - centre[0], p[:, 2] - centre[2])
-            outer[np.nonzero(sel)[0]] = r > 0.75 * r.max()
-        tyre = dark if dark[wheel].any() else outer
+            for k in np.unique(corner[wheel & (table.objects == obj)]):
+                sel = wheel & (table.objects == obj) & (corner == k)
+                p = pts.reshape(-1, 3, 3)[sel].mean(1)
+                centre = (p.min(0) + p.max(0)) / 2
+                r = np.hypot(p[:, 0] - centre[0], p[:, 2] - centre[2])
+                outer[np.nonzero(sel)[0]] = r > 0.75 * r.max()
+        tyre = (dark | outer) if dark[wheel].any() else outer
         labels[wheel & tyre] = "tyres"
         labels[wheel & ~tyre] = "rims"
     # 4. colour on what is left. Fine groups (colour bin x texture cell) are chained into colour
@@ -296,6 +311,13 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
             carea[cluster[g]] += garea[g]
             ctop[cluster[g]] += float(areas[gsel[g] & top].sum())
         paint = max(carea, key=lambda k: (ctop[k], carea[k]))
+        psel = np.zeros(n, bool)
+        for g in ids:
+            if cluster[g] == paint:
+                psel |= gsel[g]
+        _, ps, pv = (float(x[0]) for x in _hsv(np.average(table.colour[psel], axis=0, weights=areas[psel])[None]))
+        # a neutral, light paint (white, silver) shades to mid greys where a texture bakes its lighting
+        shaded_paint = ps < 0.1 and pv > 0.7
         rest_area = max(areas[rest].sum(), 1e-12)
 
         def stats(sel):
@@ -306,8 +328,10 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
                     np.average(c[sel, 0] < -0.7, weights=w))
 
         for g in ids:  # lamps
-            share, (gh, gs, gv), *_, front_end, rear_end = stats(gsel[g])
-            if share > 0.03:
+            share, (gh, gs, gv), _, up_facing, _, front_end, rear_end = stats(gsel[g])
+            # lamps are small in any colour cluster (a red car's paint cut into pieces is no tail
+            # light) and look forwards, backwards or sideways (nor is a pale hood a headlight)
+            if share > 0.03 or carea[cluster[g]] / rest_area > 0.03 or up_facing > 0.5:
                 continue
             if _is_red(gh, gs, gv) and rear_end > 0.6:
                 decide(gsel[g], "tail_lights", "colour")
@@ -328,10 +352,22 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
             share, (gh, gs, gv), zc, up_facing, down_facing, front_end, rear_end = stats(sel)
             r, _, b = np.average(table.colour[sel], axis=0, weights=areas[sel])
             glassy = gs < 0.3 and (gv < 0.45 or b - r > 0.05)  # dark, or pale and bluish
+            if gs < 0.3 and gv < DARK_GLASS_V:
+                # dark: glass where it lies in the greenhouse band and does not face up, face by face,
+                # as one texture's black is often windows up there and trim, tyres and floor below
+                pane = sel & (c[:, 2] > 0.5) & (fn[:, 2] < 0.6)
+                if pane.any() and areas[pane].sum() / rest_area < 0.35:
+                    decide(pane, "windows", "colour")
+                    sel = sel & ~pane & (c[:, 2] < 0.5)  # the rest: trim and floor below, paint (a black roof) above
+                    if not sel.any():
+                        continue
+                    share, (gh, gs, gv), zc, up_facing, down_facing, front_end, rear_end = stats(sel)
             if zc > 0.5 and up_facing < 0.6 and share < 0.35 and glassy and gv > 0.1:
                 decide(sel, "windows", "colour")  # dark or pale blue panes in the greenhouse band
             elif gs < 0.3 and gv < 0.35 and (down_facing > 0.5 or zc < 0.15):
                 decide(sel, "underbody", "colour")
+            elif shaded_paint and gs < 0.1 and gv >= 0.4 and zc < 0.5:
+                pass  # a white or silver paint's baked shading on the lower doors: paint
             elif gs < 0.3 and gv < 0.65 and zc < 0.5:
                 decide(sel, "bumpers", "colour")  # grey plastic on the lower half: bumpers and sills
     # 5. the floor: faces that look at the ground from the lower third of the car are its underside
@@ -349,10 +385,12 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     return Labelling(labels, evidence, forward, up, category, warnings)
 
 
-def _chain(ids: list, mean: dict, cell: dict, tol: float) -> dict:
+def _chain(ids: list, mean: dict, cell: dict, tol: float, spread: float = 0.35) -> dict:
     """Single-linkage clusters of face groups that are neighbours in the texture (UV cells at most
     one apart) and close in colour (RGB distance < tol): a palette's gradient swatch, a painted
-    panel's shading; distinct swatches side by side differ in colour and stay apart."""
+    panel's shading; distinct swatches side by side differ in colour and stay apart. A cluster's
+    colours stay within `spread` per channel, so a chain of in-between shades cannot link white
+    paint to black glass."""
     parent = {g: g for g in ids}
 
     def root(g):
@@ -363,11 +401,22 @@ def _chain(ids: list, mean: dict, cell: dict, tol: float) -> dict:
 
     cols = np.array([mean[g] for g in ids])
     cells = np.array([cell[g] for g in ids], dtype=float)
+    lo = {g: mean[g].copy() for g in ids}  # colour box per cluster root
+    hi = {g: mean[g].copy() for g in ids}
     for i in range(len(ids)):
         d = np.linalg.norm(cols[i + 1:] - cols[i], axis=1)
         near = np.abs(cells[i + 1:] - cells[i]).max(axis=1) <= 1
         for j in np.nonzero((d < tol) & near)[0]:
-            parent[root(ids[i + 1 + j])] = root(ids[i])
+            a, b = root(ids[i]), root(ids[i + 1 + j])
+            if a == b:
+                continue
+            # no chains across a texture's edges: small in-between groups (where a split face
+            # straddles white paint and a black window) would link the two otherwise
+            box_lo, box_hi = np.minimum(lo[a], lo[b]), np.maximum(hi[a], hi[b])
+            if (box_hi - box_lo).max() > spread:
+                continue
+            parent[b] = a
+            lo[a], hi[a] = box_lo, box_hi
     return {g: root(g) for g in ids}
 
 
@@ -384,7 +433,7 @@ def _fmt(v) -> str:
     return "[" + ", ".join(f"{float(x):.4f}" for x in v) + "]"
 
 
-def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, min_share: float = 0.002) -> str:
+def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, min_share: float = 0.0005) -> str:
     """A rules file (TOML text) that reproduces a labelling: an object rule where an object is one
     part, material rules where materials separate its parts, else palette rules (a UV box and a
     colour range per colour group of a part). Groups under `min_share` of the area are left to
@@ -403,6 +452,8 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
         floor_rule.append({"match": "object", "pattern": "*", "objects": sorted(set(table.objects[floor])),
                            "height": FLOOR_HEIGHT, "facing": "down", "part": "underbody"})
     groups = _colour_groups(table.colour, table.uv, bins=32)
+    z = table.tris @ _axis_vec(lab.up)  # heights as the rules measure them (fractions of the model's)
+    height = (z.mean(1) - z.min()) / max(float(np.ptp(z)), 1e-9)
     for obj in sorted(set(table.objects)):
         in_obj = (table.objects == obj) & ~floor
         if not in_obj.any():
@@ -427,6 +478,10 @@ def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, m
                 uv, col = table.uv[gs], table.colour[gs]
                 rule = {"match": "palette", "objects": [obj], "part": part,
                         "uv_min": uv.min(0) - 1e-4, "uv_max": uv.max(0) + 1e-4}
+                if (lab.evidence[gs] == "colour").any():  # colour decisions depend on height (glass above the
+                    # belt, trim below in one black): the group's band keeps the rule to its faces
+                    lo_h, hi_h = float(height[gs].min()), float(height[gs].max())
+                    rule["height"] = (max(0.0, lo_h - 1e-3), min(1.0, hi_h + 1e-3))
                 if table.textured[gs].all():
                     rule["color_min"], rule["color_max"] = col.min(0) - 1e-3, col.max(0) + 1e-3
                 strong = np.isin(lab.evidence[gs], ["name", "material", "wheel"]).mean() > 0.5
