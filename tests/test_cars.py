@@ -9,7 +9,7 @@ import pytest
 
 from blender_gen.cars import CATEGORIES, STYLES, CarSpec, RandomCars, build_car, load_catalogue, select_cars
 from blender_gen.cars import sampler
-from blender_gen.cars.sampler import draw_spec, load_ranges, random_spec
+from blender_gen.cars.sampler import draw_spec, load_ranges, random_spec, ranges_for
 from blender_gen.cars.silhouette import VIEWS, diversity, iou, iou_matrix, pair_iou, silhouettes
 from blender_gen.cars.spec import ARCHES, GRILLES, HEADLIGHTS, TAIL_LIGHTS, spec_problems
 from blender_gen.geometry import Mesh
@@ -43,7 +43,7 @@ def test_every_body_style_has_every_part_grounded_and_in_its_real_world_range():
             assert not missing, f"{style}: {spec} lacks {missing}"
             pts = np.concatenate([m.verts for m in parts.values()])
             assert abs(pts[:, 2].min()) < 0.01, f"{style}: tyres touch the ground"
-            lo, hi = ranges[spec.category]["length"]
+            lo, hi = ranges_for(spec.category, spec.body_style)["length"]
             assert lo - 0.03 <= np.ptp(pts[:, 0]) <= hi + 0.03, (style, np.ptp(pts[:, 0]))
             glass = sum(len(parts[p].faces) for p in ("windshield", "window_side", "window_rear"))
             assert glass > 50, f"{style}: the greenhouse has windows"
@@ -57,6 +57,22 @@ def test_body_styles_differ_where_they_should():
     assert deck["notchback"] > 0.6 > max(deck["hatchback"], deck["wagon"], deck["suv"], deck["van"])
     assert hood["van"] < min(hood["notchback"], hood["suv"], hood["wagon"])
     assert min(c.clearance for c in s["suv"]) > max(c.clearance for c in s["notchback"])
+    assert min(deck["pickup"], min(c.length for c in s["pickup"]) - 4.9) > 0  # a long bed on a long truck
+
+
+def test_a_pickups_bed_is_open_and_its_floor_clears_the_wheels():
+    for spec in _style_samples(3)["pickup"]:
+        body = build_car(spec)["body"]
+        c, n = body.face_centroids(), body.face_normals()
+        bed_x = 0.5 * spec.length - 0.5 * (spec.cabin_end_s + spec.length)  # the bed's middle
+        above = (np.abs(c[:, 0] - bed_x) < 0.3) & (np.abs(c[:, 1]) < 0.3)
+        top = c[above, 2].max()  # looking down into the bed: the floor is the highest surface there
+        assert top < spec.tail_height - 0.3, (spec.name, top, spec.tail_height)
+        assert top > 2 * spec.wheel_radius + 0.05  # above the wheel arches
+        floor = above & (np.abs(c[:, 2] - top) < 1e-6)
+        assert (n[floor, 2] > 0.99).all()  # facing up, into the open
+        # the rails and tailgate still close the bed around: the body is as long and wide as before
+        assert np.ptp(body.verts[:, 0]) > spec.length - 0.1
 
 
 def test_random_cars_are_a_pure_function_of_seed_and_index():

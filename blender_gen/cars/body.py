@@ -113,7 +113,44 @@ def _lower_body(spec: CarSpec, sections: int = 90, ring: int = 36) -> Mesh:
         w[:, None] * prof[None, :, 0],
         zc[:, None] + hz[:, None] * prof[None, :, 1],
     ], axis=2)
-    return _orient_outward(loft(rings), (0.0, 0.0, float(np.mean(zc))))
+    body = _orient_outward(loft(rings), (0.0, 0.0, float(np.mean(zc))))
+    return _open_bed(spec, body, rings, s, prof) if spec.body_style == "pickup" else body
+
+
+BED_WALL = 0.1  # cab back wall and tailgate thickness (m)
+BED_DEPTH = 0.5  # rail to floor, where the wheel arches leave room (m)
+
+
+def _open_bed(spec: CarSpec, body: Mesh, rings: np.ndarray, s: np.ndarray, prof: np.ndarray) -> Mesh:
+    """A pickup's load bed: the lower body's top quads behind the cab are removed (the loft's quad
+    (i, j) joins rings i, i+1 at ring points j, j+1) and a tub put in the hole: walls dropped
+    from the hole's edge to a floor above the wheel arches, the floor a quad grid under the hole."""
+    n_sec, k = rings.shape[:2]
+    inside_s = np.nonzero((s >= spec.cabin_end_s + BED_WALL) & (s <= spec.length - BED_WALL))[0]
+    top_pts = np.nonzero((prof[:, 1] > 0.3) & (np.abs(prof[:, 0]) < 0.86))[0]  # contiguous about the top
+    i0, i1, j0, j1 = int(inside_s.min()), int(inside_s.max()), int(top_pts.min()), int(top_pts.max())
+    hole = np.zeros((n_sec - 1, k), bool)
+    hole[i0:i1, j0:j1] = True
+    keep = body.subset(np.nonzero(~hole.ravel())[0])
+    rail = float(rings[i0:i1 + 1, j0:j1 + 1, 2].min())
+    floor_z = max(rail - BED_DEPTH, 2.0 * spec.wheel_radius + 0.12)
+    grid = rings[i0:i1 + 1, j0:j1 + 1].copy()  # the hole's edge and inside, (i, j)
+    floor = grid.copy()
+    floor[..., 2] = floor_z
+    ni, nj = grid.shape[:2]
+    a = (np.arange(ni - 1)[:, None] * nj + np.arange(nj - 1)[None, :]).ravel()
+    floor_mesh = Mesh(floor.reshape(-1, 3), np.stack([a, a + 1, a + nj + 1, a + nj], axis=1))
+    floor_mesh = floor_mesh.flipped(floor_mesh.face_normals()[:, 2] < 0)
+    edge = np.concatenate([grid[0, :], grid[1:, -1], grid[-1, -2::-1], grid[-2:0:-1, 0]])  # closed loop
+    low = edge.copy()
+    low[:, 2] = floor_z
+    m = len(edge)
+    idx = np.arange(m)
+    walls = Mesh(np.concatenate([edge, low]), np.stack([idx, (idx + 1) % m, (idx + 1) % m + m, idx + m], axis=1))
+    centre = np.array([floor[..., 0].mean(), 0.0, floor_z])
+    d = centre - walls.face_centroids()
+    walls = walls.flipped(np.einsum("ij,ij->i", walls.face_normals(), d) < 0)  # the walls face the bed
+    return keep.extend(walls).extend(floor_mesh)
 
 
 def _greenhouse(spec: CarSpec, sections: int = 70, ring: int = 40) -> tuple[Mesh, np.ndarray]:
@@ -285,6 +322,8 @@ def _front_design(spec: CarSpec, parts: dict[str, Mesh]) -> None:
 
 def _rear_design(spec: CarSpec, parts: dict[str, Mesh]) -> None:
     W, rear_x, zt = spec.width, -0.5 * spec.length, spec.tail_height
+    if spec.body_style == "pickup":  # lamps below the bed rail, beside the tailgate
+        zt -= 0.2
 
     def on_tail(y: float, depth: float, z: float) -> float:
         return rear_x + _surface_s(spec, abs(y), z, rear=True) + 0.5 * depth - 0.04

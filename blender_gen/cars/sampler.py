@@ -20,8 +20,9 @@ from .spec import CATEGORIES, STYLES, CarSpec, spec_problems
 
 RANGES_FILE = Path(__file__).resolve().parents[2] / "data_manifests" / "car_ranges.toml"
 # Bump when the same (seed, k) would draw another car (part of recipe identities).
-SAMPLER_VERSION = 1
+SAMPLER_VERSION = 2  # 2: SUVs include pickups
 HELDOUT_IOU = 0.92  # a random car this close to a held-out model (mean silhouette IoU) is redrawn
+STYLE_RANGES = ("pickup",)  # body styles with ranges of their own (a pickup is longer than an SUV)
 DIMENSIONS = ("length", "width", "height", "wheelbase", "front_overhang", "wheel_diameter", "clearance")
 
 # Per style: (low, high) ranges in metres (or unitless), and the discrete choices.
@@ -53,6 +54,11 @@ _STYLE = {
                 roundness=(3.0, 5.5), plan=(6.0, 12.0), arches=("round", "flat", "square"), flare=(0.0, 0.05),
                 grilles=("tall", "trapezoid", "wide", "kidney"), tails=("vertical", "horizontal", "bar"),
                 doors=(4, 5), rails=0.6, tinted=0.7),
+    # tail = the load bed behind the cab; rear_run = the cab's near-upright back window
+    "pickup": dict(hood=(1.35, 1.8), ws_run=(0.55, 0.85), tail=(1.5, 2.05), rear_run=(0.08, 0.18),
+                   glass=(0.42, 0.54), nose_drop=(0.12, 0.26), hood_drop=(0.02, 0.08), tail_delta=(-0.04, 0.02),
+                   roundness=(3.5, 6.0), plan=(7.0, 12.0), arches=("square", "flat", "round"), flare=(0.0, 0.05),
+                   grilles=("tall", "wide", "trapezoid"), tails=("vertical",), doors=(2, 4), rails=0.0, tinted=0.3),
     "minivan": dict(hood=(0.7, 1.25), ws_run=(0.8, 1.45), tail=(0.06, 0.18), rear_run=(0.12, 0.35),
                     glass=(0.48, 0.65), nose_drop=(0.25, 0.38), hood_drop=(0.08, 0.18), tail_delta=(-0.02, 0.03),
                     roundness=(3.0, 5.0), plan=(6.0, 11.0), arches=("round", "flat"), flare=(0.0, 0.02),
@@ -71,13 +77,14 @@ _HEADLIGHTS = ("round", "rect", "slim", "swept")
 
 @lru_cache(maxsize=1)
 def load_ranges(path: Path = RANGES_FILE) -> dict[str, dict]:
-    """Category -> {dimension: (low, high), "references": [...]}; errors name the file."""
+    """Category (and the styles of STYLE_RANGES) -> {dimension: (low, high), "references": [...]};
+    errors name the file."""
     try:
         data = tomllib.loads(Path(path).read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{path}: cannot read the car ranges: {exc}") from exc
     out = {}
-    for cat in CATEGORIES:
+    for cat in CATEGORIES + STYLE_RANGES:
         row = data.get(cat)
         if not isinstance(row, dict):
             raise ValueError(f"{path}: no [{cat}] table")
@@ -90,10 +97,16 @@ def load_ranges(path: Path = RANGES_FILE) -> dict[str, dict]:
     return out
 
 
+def ranges_for(category: str, style: str) -> dict:
+    """The real-world ranges a car of this category and body style is drawn from."""
+    ranges = load_ranges()
+    return ranges[style] if style in STYLE_RANGES else ranges[category]
+
+
 def draw_spec(rng: np.random.Generator, category: str, name: str, split: str = "random") -> CarSpec | None:
     """One draw of the design space of `category` (None if the draw cannot be built)."""
-    r = load_ranges()[category]
     style = STYLES[category][int(rng.integers(len(STYLES[category])))]
+    r = ranges_for(category, style)
     p = _STYLE[style]
 
     def u(lo_hi) -> float:

@@ -16,7 +16,7 @@ STYLES = {
     "sedan": ("notchback", "fastback"),
     "hatchback": ("hatchback",),
     "station_wagon": ("wagon",),
-    "suv": ("suv",),
+    "suv": ("suv", "pickup"),  # light trucks: a pickup is an SUV's cab with an open load bed
     "minivan": ("minivan",),
     "van": ("van",),
 }
