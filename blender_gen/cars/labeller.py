@@ -15,9 +15,9 @@ Evidence, strongest first, each face keeping the first that decides it:
   white or silver paint's baked shading.
 Everything else is the painted body. A textured model's faces arrive cut along their texture's
 edges (`texsplit.py`, done by the reader), so colour decides pieces, not whole large triangles.
-Orientation (up, forward) is inferred when not given: up is
-the axis that most area faces along (roof, hood), forward the end without the red lamps (or,
-failing those, the end whose top is lower: the hood).
+Orientation (up, forward) is inferred when not given: up is the axis that most area faces along
+(roof, hood), forward the end without the red lamps (or, failing those, the end whose top is
+lower: the hood).
 """
 from __future__ import annotations
 
