@@ -6,7 +6,9 @@ figure is the area-weighted share of faces given the same part (windows and bump
 before their split into windshield/side/rear and front/rear, which is the same geometry rule for
 both). Also printed: the agreement without the floor (faces that look at the ground from the lower
 third of the car, which both sides call underbody by the same geometric test), the inferred
-up/forward axes against the rules', and the parts confused most.
+up/forward axes against the rules', and the parts confused most. Then, for the five CC-BY models of
+../shared/assets/cars3d_cc_by/ (no hand rules exist), the share of each inferred part and what
+the proposed rules reproduce.
 
   python bench/bench_labeller.py [--assets ../shared/assets]
 """
@@ -66,6 +68,45 @@ def main() -> None:
         print(f"{path.stem:10s} {len(table):6d} {100 * score:5.1f}% {100 * no_floor:5.1f}%  {axes:22s}  {worst:42s} {time.time() - t0:.1f}")
     print(f"mean {100 * sum(scores) / len(scores):.1f}%, lowest {100 * min(scores):.1f}%; goal: at least "
           f"{100 * a.goal:.0f}% per model -> {'met' if min(scores) >= a.goal else 'NOT met'}")
+    cc_by(a.assets / "cars3d_cc_by")
+
+
+# The CC-BY models have no hand rules: what the labeller finds is printed (share of the model's
+# area per part) with what its proposed rules reproduce, to compare versions by.
+CC_BY = {"suv": "gazebo/suv/meshes/suv.obj", "hatchback": "gazebo/hatchback/meshes/hatchback.obj",
+         "prius": "gazebo/prius_hybrid/meshes/Hybrid.obj", "ambulance": "gazebo/ambulance/meshes/ambulance.obj",
+         "beetle": "metadrive/beetle/vehicle.gltf+metadrive/beetle/right_tire_front.gltf"
+                   "+metadrive/beetle/right_tire_back.gltf"}
+
+
+def cc_by(folder: Path) -> None:
+    import tempfile
+
+    from blender_gen.cars.faces import read_car
+    from blender_gen.cars.labeller import agreement, infer, propose_rules
+    from blender_gen.cars.rules import load_rules, rule_labels
+
+    if not folder.is_dir():
+        print(f"{folder}: not found, CC-BY models skipped")
+        return
+    shown = ("windows", "body", "bumpers", "underbody", "tyres", "rims", "headlights", "tail_lights")
+    print("\nCC-BY models (% of area per inferred part; 'rules': proposed rules reproduce the labels)")
+    print(f"{'model':10s} {'faces':>6s} " + " ".join(f"{p[:9]:>9s}" for p in shown) + "  rules")
+    for name, rel in CC_BY.items():
+        files = [folder / p for p in rel.split("+")]
+        if not all(f.is_file() for f in files):
+            print(f"{name:10s} missing")
+            continue
+        table, _ = read_car(files)
+        lab = infer(table)
+        areas = table.areas()
+        share = {p: 100 * areas[lab.labels == p].sum() / areas.sum() for p in shown}
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "r.toml"
+            path.write_text(propose_rules(table, lab, files[0].name))
+            again, _ = rule_labels(table, load_rules(path), "body", files[0], lab.up)
+        print(f"{name:10s} {len(table):6d} " + " ".join(f"{share[p]:9.1f}" for p in shown)
+              + f"  {100 * agreement(again, lab.labels, areas):.1f}%")
 
 
 if __name__ == "__main__":
