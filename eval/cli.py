@@ -135,6 +135,24 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
 
 
 @main.command()
+@click.argument("reports", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write it as Markdown.")
+def seeds(reports, out) -> None:
+    """Several seeds of one comparison: every seed's figure per model, and the paper's orderings
+    (full model ahead) said to hold on all seeds, some or none. REPORTS: report folders or their
+    results.json, one per seed (`iae-eval report` or `reproduce`'s OUT/report)."""
+    from blender_gen.dataset import atomic_write_bytes
+
+    from .seeds import compare
+
+    with one_line_errors():
+        text = compare(list(reports))
+    if out is not None:
+        atomic_write_bytes(out, text.encode())
+    click.echo(text)
+
+
+@main.command()
 @click.option("--run", "runs", multiple=True, required=True, type=click.Path(path_type=Path),
               help="Run folder whose R renders the path (repeatable).")
 @click.option("--path", "path", required=True, type=click.Path(path_type=Path),
