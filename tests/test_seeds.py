@@ -40,3 +40,18 @@ def test_a_folder_without_a_report_is_a_clear_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="results.json"):
         load([tmp_path / "empty"])
+
+
+def test_the_command_prints_and_writes_the_comparison(tmp_path):
+    from click.testing import CliRunner
+
+    from eval.cli import main
+
+    a = _report(tmp_path / "s21" / "report", (38.0, 42.0, 36.0), (39.0, 49.0, 35.0))
+    b = _report(tmp_path / "s22" / "report", (37.0, 45.0, 37.0), (36.0, 50.0, 38.0))
+    res = CliRunner().invoke(main, ["seeds", str(a), str(b), "--out", str(tmp_path / "seeds.md")])
+    assert res.exit_code == 0, res.output
+    assert "Seeds, in this order: s21, s22" in res.output
+    assert (tmp_path / "seeds.md").read_text() in res.output
+    bad = CliRunner().invoke(main, ["seeds", str(tmp_path)])  # a folder that is no report
+    assert bad.exit_code != 0 and "results.json" in bad.output
