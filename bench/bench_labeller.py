@@ -83,8 +83,7 @@ def cc_by(folder: Path) -> None:
     import tempfile
 
     from blender_gen.cars.faces import read_car
-    from blender_gen.cars.labeller import agreement, infer, propose_rules
-    from blender_gen.cars.rules import load_rules, rule_labels
+    from blender_gen.cars.labeller import infer, propose_rules, rules_reproduce
 
     if not folder.is_dir():
         print(f"{folder}: not found, CC-BY models skipped")
@@ -104,9 +103,9 @@ def cc_by(folder: Path) -> None:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "r.toml"
             path.write_text(propose_rules(table, lab, files[0].name))
-            again, _ = rule_labels(table, load_rules(path), "body", files[0], lab.up)
+            reproduced = rules_reproduce(table, lab, path, files[0])
         print(f"{name:10s} {len(table):6d} " + " ".join(f"{share[p]:9.1f}" for p in shown)
-              + f"  {100 * agreement(again, lab.labels, areas):.1f}%")
+              + f"  {100 * reproduced:.1f}%")
 
 
 if __name__ == "__main__":

@@ -321,7 +321,7 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
     `--car-rules auto` on the other commands uses the same inference on the fly.
     """
     from .cars.labeller import preview as draw_preview
-    from .cars.rules import RulesError, load_rules
+    from .cars.rules import RulesError
 
     tokens = check_cars(models, "auto")
     several = len(tokens) > 1
@@ -341,9 +341,8 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
                 _fail(f"{path}: exists; pass --force to overwrite")
         targets.append((token, name, rules_path, png))
     from .cars.importer import model_files
-    from .cars.rules import rule_labels
     from .cars.faces import read_car
-    from .cars.labeller import agreement, infer, propose_rules
+    from .cars.labeller import infer, propose_rules, rules_reproduce
     from .dataset import atomic_target
 
     for token, name, rules_path, png in targets:
@@ -358,8 +357,7 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         with atomic_target(rules_path) as tmp:
             Path(tmp).write_text(text, encoding="utf-8")
         try:
-            # as the importer applies them: the model's first file and its up axis (height, facing)
-            again, _ = rule_labels(table, load_rules(rules_path), "body", token.split("+")[0], lab.up)
+            reproduced = rules_reproduce(table, lab, rules_path, token.split("+")[0])
         except RulesError as exc:
             _fail(f"{rules_path}: the proposed rules do not load ({exc}); please report this model")
         click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category} -> {rules_path}")
@@ -368,7 +366,7 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
             click.echo(f"  {part:16s} {faces:6d} faces {100 * share:5.1f}% of area   ({ev})")
         for w in lab.warnings:
             click.echo(f"  warning: {w}")
-        click.echo(f"  the proposed rules give the inferred part to {100 * agreement(again, lab.labels, areas):.1f}% "
+        click.echo(f"  the proposed rules give the inferred part to {100 * reproduced:.1f}% "
                    "of the area")
         if png is not None:
             png.parent.mkdir(parents=True, exist_ok=True)

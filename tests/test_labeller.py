@@ -2,6 +2,7 @@
 and the CLI on a real model when ../shared/assets is there."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tomllib
@@ -135,6 +136,9 @@ def test_label_parts_cli_on_a_kenney_model_and_auto_rules_render(tmp_path):
                                 "--preview", str(tmp_path / "sedan.png")], capture_output=True, text=True, cwd=ROOT)
     assert run.returncode == 0, run.stderr
     assert "forward -Y, up +Z" in run.stdout and "tyres" in run.stdout and "windows" in run.stdout
+    # the proposal is re-applied as the importer would and reproduces the inference
+    reproduced = re.search(r"give the inferred part to ([0-9.]+)% of the area", run.stdout)
+    assert reproduced and float(reproduced.group(1)) > 85, run.stdout
     assert (tmp_path / "sedan.png").stat().st_size > 10000
     rules = load_rules(tmp_path / "sedan.toml")
     assert rules.model.forward == "-Y"

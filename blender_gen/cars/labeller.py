@@ -311,10 +311,15 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
             carea[cluster[g]] += garea[g]
             ctop[cluster[g]] += float(areas[gsel[g] & top].sum())
         paint = max(carea, key=lambda k: (ctop[k], carea[k]))
-        psel = np.zeros(n, bool)
-        for g in ids:
-            if cluster[g] == paint:
-                psel |= gsel[g]
+
+        def members(k) -> np.ndarray:  # the faces of colour cluster k
+            sel = np.zeros(n, bool)
+            for g in ids:
+                if cluster[g] == k:
+                    sel |= gsel[g]
+            return sel
+
+        psel = members(paint)
         _, ps, pv = (float(x[0]) for x in _hsv(np.average(table.colour[psel], axis=0, weights=areas[psel])[None]))
         # a neutral, light paint (white, silver) shades to mid greys where a texture bakes its lighting
         shaded_paint = ps < 0.1 and pv > 0.7
@@ -342,11 +347,7 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
         for k in carea:
             if k == paint:
                 continue
-            sel = np.zeros(n, bool)
-            for g in ids:
-                if cluster[g] == k:
-                    sel |= gsel[g]
-            sel &= labels == ""
+            sel = members(k) & (labels == "")
             if not sel.any() or areas[sel].sum() <= 0:
                 continue
             share, (gh, gs, gv), zc, up_facing, down_facing, front_end, rear_end = stats(sel)
@@ -423,6 +424,19 @@ def _chain(ids: list, mean: dict, cell: dict, tol: float, spread: float = 0.35) 
 def agreement(a: np.ndarray, b: np.ndarray, areas: np.ndarray) -> float:
     """Area-weighted share of faces with the same part."""
     return float(areas[a == b].sum() / max(areas.sum(), 1e-12))
+
+
+def rules_reproduce(table, lab: Labelling, rules_path, model_file) -> float:
+    """Share of the area to which the rules file at rules_path gives the part `lab` inferred.
+
+    Applied as the importer applies them (the model's first file names it; its up axis decides
+    heights and facing), so a proposal is checked the way it will be used. Raises RulesError
+    when the file does not load.
+    """
+    from .rules import load_rules, rule_labels
+
+    again, _ = rule_labels(table, load_rules(rules_path), "body", model_file, lab.up)
+    return agreement(again, lab.labels, table.areas())
 
 
 def _toml_str(s: str) -> str:
