@@ -35,9 +35,13 @@ def gap(probe: Path, runs: list[Path], batch: int = 16) -> None:
     print(f"H on the probe's images | H on R(the same images' true intrinsics); probe {probe}")
     print(f"{'run':12s} {'step':>6s}   {'normals':>8s} {'albedo':>7s} {'reflect':>7s}   "
           f"{'normals':>8s} {'albedo':>7s} {'reflect':>7s}")
+    probes = {}  # decoded once per training resolution, not once per run
     for run in runs:
         cfg, model, step, _ = load_run_checkpoint(run, "cpu", None)
-        p = load_probe(probe, cfg.data.height, cfg.data.width, limit=None)
+        size = (cfg.data.height, cfg.data.width)
+        if size not in probes:
+            probes[size] = load_probe(probe, *size, limit=None)
+        p = probes[size]
         model.eval()
         gen = torch.Generator().manual_seed(0)  # fixed style codes where R draws them (MUNIT)
         with torch.no_grad():

@@ -70,7 +70,7 @@ def table(names: list[str], rows: dict[str, Seeded]) -> str:
     return "\n".join(lines)
 
 
-def orderings(names: list[str], rows: dict[str, Seeded]) -> list[str]:
+def orderings(rows: dict[str, Seeded]) -> list[str]:
     """One line per (model, column) of the paper's orderings: holds / holds on k of n / fails."""
     if FULL not in rows:
         return [f"no '{FULL}' run in the reports: no orderings to check"]
@@ -95,4 +95,4 @@ def orderings(names: list[str], rows: dict[str, Seeded]) -> list[str]:
 
 def compare(paths: list[Path]) -> str:
     names, rows = load(paths)
-    return table(names, rows) + "\n\n" + "\n".join(f"- {line}" for line in orderings(names, rows)) + "\n"
+    return table(names, rows) + "\n\n" + "\n".join(f"- {line}" for line in orderings(rows)) + "\n"
