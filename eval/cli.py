@@ -153,6 +153,25 @@ def seeds(reports, out) -> None:
 
 
 @main.command()
+@click.argument("parts", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The joined results.json (name it for the seed: `iae-eval seeds` labels it by its name).")
+def merge(parts, out) -> None:
+    """Join reports of disjoint runs of one seed (e.g. made in different sessions) into one
+    results.json for `iae-eval seeds`. PARTS: report folders or their results.json; they must have
+    been evaluated on the same sets."""
+    from blender_gen.dataset import atomic_write_json
+
+    from .seeds import merge as merge_parts
+
+    with one_line_errors():
+        joined = merge_parts(list(parts))
+    atomic_write_json(out, joined)
+    click.echo(f"{out}: {len(joined['runs'])} runs ({', '.join(r['label'] for r in joined['runs'])}) "
+               f"from {len(parts)} part(s)")
+
+
+@main.command()
 @click.option("--run", "runs", multiple=True, required=True, type=click.Path(path_type=Path),
               help="Run folder whose R renders the path (repeatable).")
 @click.option("--path", "path", required=True, type=click.Path(path_type=Path),

@@ -1,6 +1,10 @@
 """Several seeds of one comparison side by side: per-model tables with every seed's figure and
 the paper's orderings, each said to hold on all seeds, on some, or on none.
 
+A seed's comparison may come in parts (`merge`): on a 2-core machine its ten runs take longer than
+one session, so each session reports the runs it finished and the parts are joined afterwards,
+provided they were evaluated on the same sets.
+
 Input: the `results.json` of `iae-eval report` (or of `reproduce`, `OUT/report/`) per seed, for the
 same models. Single runs here move by several degrees between evaluations, so an ordering is only
 called held when it holds on every seed, and each comes with its margins per seed and the spread
@@ -42,10 +46,7 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
     names = []
     for k, path in enumerate(paths):
         f = path / "results.json" if path.is_dir() else path
-        try:
-            data = json.loads(f.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{f}: cannot read a report's results.json ({exc})") from None
+        data = _read(path)
         folder = f.parent if f.name == "results.json" else f.with_suffix("")
         names.append(folder.parent.name if folder.name == "report" else folder.name)  # reproduce's OUT/report
         for entry in data.get("runs", []) + data.get("references", []):
@@ -56,6 +57,52 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
             for col, where in COLUMNS:
                 row.values[col][k] = _value(entry, where)
     return names, rows
+
+
+# What must agree between the parts of one seed: every field of the evaluation sets but where
+# they lay (each session had its own output folder)
+_SET_FIELDS = ("kind", "count", "seed", "cars", "envmaps")
+_SET_ROLES = ("--data", "--real", "--intrinsics")
+
+
+def _read(path: Path) -> dict:
+    f = path / "results.json" if path.is_dir() else path
+    try:
+        return json.loads(f.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{f}: cannot read a report's results.json ({exc})") from None
+
+
+def merge(parts: list[Path]) -> dict:
+    """One seed's results.json from several reports of disjoint runs on the same evaluation sets
+    (same kind, count, seed, cars and skies; the folders may differ). References (constant
+    predictor, albedo copy) come from the first part."""
+    if not parts:
+        raise ValueError("merge: no reports given")
+    datas = [_read(p) for p in parts]
+    first = {d["role"]: d for d in datas[0].get("datasets", []) if d.get("role") in _SET_ROLES}
+    missing = [r for r in _SET_ROLES if r not in first]
+    if missing:
+        raise ValueError(f"{parts[0]}: its results.json names no {', '.join(missing)} set; cannot check the parts agree")
+    seen: dict[str, Path] = {}
+    runs = []
+    for path, data in zip(parts, datas):
+        sets = {d["role"]: d for d in data.get("datasets", []) if d.get("role") in _SET_ROLES}
+        for role, ref in first.items():
+            other = sets.get(role)
+            diff = [k for k in _SET_FIELDS if other is None or other.get(k) != ref.get(k)]
+            if diff:
+                raise ValueError(f"{path}: its {role} set differs from {parts[0]}'s in {', '.join(diff)}; "
+                                 "parts of one seed must be evaluated on the same sets")
+        for entry in data.get("runs", []):
+            label = entry.get("label")
+            if label in seen:
+                raise ValueError(f"{path}: run '{label}' is also in {seen[label]}; each run belongs to one part")
+            seen[label] = path
+            runs.append(entry)
+    return {"runs": runs, "references": datas[0].get("references", []), "datasets": datas[0].get("datasets", []),
+            "warnings": sorted({w for d in datas for w in d.get("warnings", [])}),
+            "parts": [str(p) for p in parts]}
 
 
 def _fmt(vals: list[float | None], digits: int = 1) -> str:

@@ -55,3 +55,52 @@ def test_the_command_prints_and_writes_the_comparison(tmp_path):
     assert (tmp_path / "seeds.md").read_text() in res.output
     bad = CliRunner().invoke(main, ["seeds", str(tmp_path)])  # a folder that is no report
     assert bad.exit_code != 0 and "results.json" in bad.output
+
+
+def _part(folder, runs, data_seed=23):
+    """A report of some runs of one seed, evaluated on sets like reproduce's (paths differ per session)."""
+    def dec(n):
+        return {"normal_mean_deg": n, "albedo_l1_srgb255": 40.0, "reflection_l1_srgb255": 35.0}
+
+    sets = [{"role": role, "path": str(folder / role.strip("-")), "kind": kind, "count": count, "seed": seed,
+             "cars": {"sedan_a": count}, "envmaps": {"sky_00": count}}
+            for role, kind, count, seed in (("--data", "pbr", 48, data_seed), ("--real", "pbr", 400, 22),
+                                            ("--intrinsics", "intrinsics", 200, 24))]
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "runs": [{"label": label, "dec": dec(n), "fid": None} for label, n in runs],
+        "references": [{"label": "Constant predictor", "dec": dec(40.0), "fid": None}],
+        "datasets": sets, "warnings": []}))
+    return folder
+
+
+def test_parts_of_one_seed_merge_only_when_evaluated_on_the_same_sets(tmp_path):
+    from eval.seeds import merge
+
+    a = _part(tmp_path / "session1", [("Ours (full)", 38.0), ("Ours, w/o decomp. cycle", 36.0)])
+    b = _part(tmp_path / "session2", [("Ours, w/o A", 35.0)])
+    joined = merge([a, b / "results.json"])
+    assert [r["label"] for r in joined["runs"]] == ["Ours (full)", "Ours, w/o decomp. cycle", "Ours, w/o A"]
+    assert [r["label"] for r in joined["references"]] == ["Constant predictor"]
+    with pytest.raises(ValueError, match="also in"):  # one run reported twice
+        merge([a, a])
+    c = _part(tmp_path / "other_data", [("Ours, w/o N", 39.0)], data_seed=99)
+    with pytest.raises(ValueError, match=r"--data set differs .* in seed"):
+        merge([a, c])
+
+
+def test_merged_parts_feed_the_seeds_comparison(tmp_path):
+    from click.testing import CliRunner
+
+    from eval.cli import main
+
+    a = _part(tmp_path / "p1", [("Ours (full)", 38.0)])
+    b = _part(tmp_path / "p2", [("Ours, w/o A", 35.0)])
+    res = CliRunner().invoke(main, ["merge", str(a), str(b), "--out", str(tmp_path / "cpu_s22.json")])
+    assert res.exit_code == 0, res.output
+    assert "2 runs (Ours (full), Ours, w/o A) from 2 part(s)" in res.output
+    text = CliRunner().invoke(main, ["seeds", str(tmp_path / "cpu_s22.json")]).output
+    assert "Seeds, in this order: cpu_s22" in text
+    assert "full better than Ours, w/o A on normals (deg): fails (margins -3.0)" in text
+    bad = CliRunner().invoke(main, ["merge", str(a), str(a), "--out", str(tmp_path / "x.json")])
+    assert bad.exit_code != 0 and "also in" in bad.output and not (tmp_path / "x.json").exists()
