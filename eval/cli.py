@@ -314,11 +314,18 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
                f"{b.train[0]}x{b.train[1]}, batch {b.batch}")
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
                f"{jobs} training(s) at a time")
-    click.echo(f"  expected  about {plan.estimate_minutes():.0f} min (from rates measured on a 2-core CPU"
-               f"{'; GPU rates are a guess' if gpus or budget in ('gpu', 'paper') else ''})")
     click.echo(f"  output    {plan.out}")
     with one_line_errors():
         plan.check_configs()
+    if gpus:
+        click.echo(f"  expected  about {plan.estimate_minutes():.0f} min (GPU rates are a guess)")
+    else:  # CPUs differ by more than 2x: time a few steps of every run here, lanes side by side
+        click.echo("  measuring each training's speed on this machine (3 steps per run) ...")
+        rates = plan.measure_rates()
+        click.echo("  speed     " + ", ".join(f"{n} {rates[n] * 60:.0f}" for n in chosen) + " steps/min"
+                   + (f" ({plan.lanes()} side by side)" if plan.lanes() > 1 else ""))
+        click.echo(f"  expected  about {plan.estimate_minutes(rates):.0f} min (training from these speeds; "
+                   "probes and checkpoints add a few percent)")
     if dry_run:
         return
     if shutil.which("torchrun") is None and gpus > 1:

@@ -12,6 +12,7 @@ Every stage resumes: datasets and runs continue where they stopped, finished one
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -140,16 +141,49 @@ class Plan:
         from train.config import load_config
 
         for name in self.runs:
-            cmd = self.fit_command(name)
-            i = cmd.index("--config")
-            load_config(cmd[i + 1], [cmd[k + 1] for k in range(len(cmd)) if cmd[k] == "--set"])
+            load_config(*self._config_args(name))
 
-    def estimate_minutes(self) -> float:
-        b = self.budget
+    def lanes(self) -> int:
         # Trainings beyond the runs, or beyond the cores on a CPU, cannot run side by side.
         cap = 1 if self.gpus else (os.cpu_count() or 1)  # on GPUs one torchrun after another
-        lanes = max(1, min(self.jobs, len(self.runs), cap))
-        train = len(self.runs) * b.steps / b.rate / 60 / lanes
+        return max(1, min(self.jobs, len(self.runs), cap))
+
+    def _config_args(self, name: str) -> tuple[str, list[str]]:
+        cmd = self.fit_command(name)
+        return cmd[cmd.index("--config") + 1], [cmd[k + 1] for k in range(len(cmd)) if cmd[k] == "--set"]
+
+    def measure_rates(self, steps: int = 2) -> dict[str, float]:
+        """Steps per second of every run on this machine, measured `lanes()` at a time with the
+        plan's threads each (eval.step_rate), as the trainings will run."""
+        lanes = self.lanes()
+        groups = [self.runs[k::lanes] for k in range(lanes)]
+        env = dict(os.environ, OMP_NUM_THREADS=str(self.threads), MKL_NUM_THREADS=str(self.threads))
+        procs = [subprocess.Popen([sys.executable, "-m", "eval.step_rate",
+                                   json.dumps([[n, *self._config_args(n)] for n in group]), str(steps)],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                  cwd=Path(__file__).resolve().parents[1])
+                 for group in groups if group]
+        rates: dict[str, float] = {}
+        for proc in procs:
+            out, err = proc.communicate()
+            if proc.returncode:
+                raise click.ClickException(f"measuring the training speed failed: {err.strip()[-300:]}")
+            rates.update(json.loads(out.strip().splitlines()[-1]))
+        return rates
+
+    def estimate_minutes(self, rates: dict[str, float] | None = None) -> float:
+        """Data, training and report time; training from `rates` (measured steps/s per run) when
+        given, else from the budget's fixed rate. Lanes take the next run as they free up."""
+        b = self.budget
+        lanes = self.lanes()
+        if rates:
+            busy = [0.0] * lanes
+            for name in self.runs:
+                k = busy.index(min(busy))
+                busy[k] += b.steps / rates[name]
+            train = max(busy) / 60
+        else:
+            train = len(self.runs) * b.steps / b.rate / 60 / lanes
         data = (b.n_intrinsics / 30 + b.n_real * 0.7 * b.pbr_samples / 4 + b.n_eval * 1.2 + b.n_fid / 30) / 60
         report = (len(self.runs) * (b.n_eval + 2 * b.n_fid) / 9 + b.n_real / 9) / 60
         return train + data + report + 1

@@ -1,0 +1,55 @@
+"""How fast each training of a `reproduce` plan runs on this machine.
+
+A few real optimisation steps (generator and discriminator) of each run's own model and config on
+random batches of the run's size, in as many processes at once as the plan has lanes, each with
+the plan's threads: trainings side by side slow each other down, and CPUs differ by more than 2x
+(a 2-core EPYC without AVX-512 trains the `cpu` budget's full model 2.4x slower than the machine
+its fixed rate was timed on), so a time estimate from a fixed rate can be hours off.
+Data loading, probes and checkpoints are not in the figure: they add a few percent.
+
+Run as a module by `eval.reproduce.Plan.measure_rates`: argv[1] is a JSON list of
+[name, preset, [--set ...]]; prints one JSON object {name: steps per second}.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+def step_rate(preset: str, sets: list[str], steps: int = 2) -> float:
+    """Steps per second of one training of `preset` with `sets`, after one warm-up step."""
+    import torch
+
+    from train.config import load_config
+    from train.loop import build_optimisation, discriminator_step, generator_step
+    from train.model import build_model
+
+    cfg = load_config(preset, sets)
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    model.train()
+    g, d, opts, _ = build_optimisation(cfg, model)
+    b, h, w = cfg.data.batch_size, cfg.data.height, cfg.data.width
+    m_s, i_r = torch.rand(b, 9, h, w) * 2 - 1, torch.rand(b, 3, h, w) * 2 - 1
+
+    def one() -> None:
+        out, _ = generator_step(model, opts["G"], g, m_s, i_r)
+        if d:
+            discriminator_step(model, opts["D"], d, out)
+
+    one()  # warm-up: first-call allocations and oneDNN kernel selection
+    t = time.perf_counter()
+    for _ in range(steps):
+        one()
+    return steps / (time.perf_counter() - t)
+
+
+def main() -> None:
+    jobs = json.loads(sys.argv[1])
+    steps = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    print(json.dumps({name: step_rate(preset, sets, steps) for name, preset, sets in jobs}))
+
+
+if __name__ == "__main__":
+    main()

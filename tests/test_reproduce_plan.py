@@ -1,0 +1,44 @@
+"""`iae-eval reproduce`'s plan: the time estimate comes from speeds measured on this machine."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from eval.reproduce import BUDGETS, Plan
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _plan(runs, jobs=2):
+    return Plan(BUDGETS["smoke"], Path("unused"), 0, jobs, 1, 0, list(runs))
+
+
+def test_measured_speeds_cover_every_run_of_the_plan():
+    plan = _plan(["full", "no_dec", "oracle"])
+    rates = plan.measure_rates(steps=1)
+    assert sorted(rates) == ["full", "no_dec", "oracle"]
+    assert all(r > 0 for r in rates.values())
+
+
+def test_the_estimate_packs_runs_into_lanes_as_they_free_up(monkeypatch):
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    plan = _plan(["full", "no_dec", "oracle"])
+    steps = plan.budget.steps
+    instant = {n: 1e9 for n in plan.runs}  # training takes no time: data, report and overhead only
+    per_min = {"full": steps / 60, "no_dec": steps / 120, "oracle": steps / 60}  # 1, 2 and 1 minutes
+    # lane 1: full (1 min) then oracle (1 min); lane 2: no_dec (2 min) -> 2 minutes in all
+    assert plan.estimate_minutes(per_min) - plan.estimate_minutes(instant) == pytest.approx(2.0, abs=1e-6)
+    one_lane = _plan(["full", "no_dec", "oracle"], jobs=1)
+    assert one_lane.estimate_minutes(per_min) - one_lane.estimate_minutes(instant) == pytest.approx(4.0, abs=1e-6)
+
+
+def test_dry_run_prints_the_measured_speeds():
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs",
+                           "no_dec,cyclegan", "--dry-run", "--out", "unused"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    speed = next(line for line in proc.stdout.splitlines() if line.strip().startswith("speed"))
+    assert "no_dec" in speed and "cyclegan" in speed and "steps/min" in speed
+    assert "expected  about" in proc.stdout
