@@ -86,7 +86,17 @@ def merge(parts: list[Path]) -> dict:
         raise ValueError(f"{parts[0]}: its results.json names no {', '.join(missing)} set; cannot check the parts agree")
     seen: dict[str, Path] = {}
     runs = []
+    trained_on: dict[str, tuple[Path, dict]] = {}  # "training intrinsics" / "real images" -> first seen
     for path, data in zip(parts, datas):
+        for d in data.get("datasets", []):  # every run of the seed trained on the same two sets
+            kind = next((k for k in ("training intrinsics", "real images") if str(d.get("role", "")).endswith(k)), None)
+            if kind is None:
+                continue
+            where, ref = trained_on.setdefault(kind, (path, d))
+            diff = [k for k in _SET_FIELDS if d.get(k) != ref.get(k)]
+            if diff:
+                raise ValueError(f"{path}: {d['role']} differ from {where}'s {ref['role']} in {', '.join(diff)}; "
+                                 "parts of one seed must train on the same sets")
         sets = {d["role"]: d for d in data.get("datasets", []) if d.get("role") in _SET_ROLES}
         for role, ref in first.items():
             other = sets.get(role)

@@ -57,7 +57,7 @@ def test_the_command_prints_and_writes_the_comparison(tmp_path):
     assert bad.exit_code != 0 and "results.json" in bad.output
 
 
-def _part(folder, runs, data_seed=23):
+def _part(folder, runs, data_seed=23, train_count=2000):
     """A report of some runs of one seed, evaluated on sets like reproduce's (paths differ per session)."""
     def dec(n):
         return {"normal_mean_deg": n, "albedo_l1_srgb255": 40.0, "reflection_l1_srgb255": 35.0}
@@ -65,7 +65,8 @@ def _part(folder, runs, data_seed=23):
     sets = [{"role": role, "path": str(folder / role.strip("-")), "kind": kind, "count": count, "seed": seed,
              "cars": {"sedan_a": count}, "envmaps": {"sky_00": count}}
             for role, kind, count, seed in (("--data", "pbr", 48, data_seed), ("--real", "pbr", 400, 22),
-                                            ("--intrinsics", "intrinsics", 200, 24))]
+                                            ("--intrinsics", "intrinsics", 200, 24),
+                                            (f"{runs[0][0]} training intrinsics", "intrinsics", train_count, 21))]
     folder.mkdir(parents=True)
     (folder / "results.json").write_text(json.dumps({
         "runs": [{"label": label, "dec": dec(n), "fid": None} for label, n in runs],
@@ -87,6 +88,9 @@ def test_parts_of_one_seed_merge_only_when_evaluated_on_the_same_sets(tmp_path):
     c = _part(tmp_path / "other_data", [("Ours, w/o N", 39.0)], data_seed=99)
     with pytest.raises(ValueError, match=r"--data set differs .* in seed"):
         merge([a, c])
+    d = _part(tmp_path / "smaller_training_set", [("Ours, w/o F", 41.0)], train_count=1000)
+    with pytest.raises(ValueError, match=r"training intrinsics differ .* in count"):
+        merge([a, d])
 
 
 def test_merged_parts_feed_the_seeds_comparison(tmp_path):
