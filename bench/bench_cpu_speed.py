@@ -11,8 +11,6 @@ import json
 import os
 import subprocess
 import sys
-import time
-from contextlib import nullcontext
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,35 +28,12 @@ def one(config: str, h: int, w: int, batch: int, steps: int, variant: dict) -> d
     import torch
 
     torch.set_num_threads(variant.get("threads", os.cpu_count() or 1))
-    from train.config import load_config
-    from train.loop import build_optimisation, discriminator_step, generator_step
-    from train.model import build_model
+    from eval.step_rate import time_steps
 
-    cfg = load_config(config, [f"data.height={h}", f"data.width={w}", f"data.batch_size={batch}"])
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    g, d, opts, _ = build_optimisation(cfg, model)
-    m_s, i_r = torch.rand(batch, 9, h, w) * 2 - 1, torch.rand(batch, 3, h, w) * 2 - 1
-    if variant.get("channels_last"):
-        model = model.to(memory_format=torch.channels_last)
-        m_s, i_r = (x.contiguous(memory_format=torch.channels_last) for x in (m_s, i_r))
-    if variant.get("compile"):
-        model.forward_all = torch.compile(model.forward_all)
-    autocast = (lambda: torch.autocast("cpu", dtype=torch.bfloat16)) if variant.get("bf16") else nullcontext
-
-    def step():
-        out, _ = generator_step(model, opts["G"], g, m_s, i_r, autocast)
-        discriminator_step(model, opts["D"], d, out, autocast)
-
-    t = time.perf_counter()
-    for _ in range(3):  # warm-up (compilation happens here)
-        step()
-    warm = time.perf_counter() - t
-    t = time.perf_counter()
-    for _ in range(steps):
-        step()
-    dt = time.perf_counter() - t
-    return {"it_per_s": steps / dt, "images_per_s": steps * batch / dt, "warmup_s": warm}
+    sets = [f"data.height={h}", f"data.width={w}", f"data.batch_size={batch}"]
+    rate, warm = time_steps(config, sets, steps, warmup=3, channels_last=variant.get("channels_last", False),
+                            compile=variant.get("compile", False), bf16=variant.get("bf16", False))
+    return {"it_per_s": rate, "images_per_s": rate * batch, "warmup_s": warm}
 
 
 def main() -> None:

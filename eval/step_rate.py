@@ -17,8 +17,15 @@ import sys
 import time
 
 
-def step_rate(preset: str, sets: list[str], steps: int = 2) -> float:
-    """Steps per second of one training of `preset` with `sets`, after one warm-up step."""
+def time_steps(preset: str, sets: list[str], steps: int = 2, warmup: int = 1, *, channels_last: bool = False,
+               compile: bool = False, bf16: bool = False) -> tuple[float, float]:
+    """(steps per second, warm-up seconds) of one training of `preset` with `sets`.
+
+    The keyword variants (memory layout, torch.compile, bf16 autocast) are what
+    bench/bench_cpu_speed.py compares; `reproduce` times the trainings as they will run.
+    """
+    from contextlib import nullcontext
+
     import torch
 
     from train.config import load_config
@@ -32,17 +39,31 @@ def step_rate(preset: str, sets: list[str], steps: int = 2) -> float:
     g, d, opts, _ = build_optimisation(cfg, model)
     b, h, w = cfg.data.batch_size, cfg.data.height, cfg.data.width
     m_s, i_r = torch.rand(b, 9, h, w) * 2 - 1, torch.rand(b, 3, h, w) * 2 - 1
+    if channels_last:
+        model = model.to(memory_format=torch.channels_last)
+        m_s, i_r = (x.contiguous(memory_format=torch.channels_last) for x in (m_s, i_r))
+    if compile:
+        model.forward_all = torch.compile(model.forward_all)
+    autocast = (lambda: torch.autocast("cpu", dtype=torch.bfloat16)) if bf16 else nullcontext
 
     def one() -> None:
-        out, _ = generator_step(model, opts["G"], g, m_s, i_r)
+        out, _ = generator_step(model, opts["G"], g, m_s, i_r, autocast)
         if d:
-            discriminator_step(model, opts["D"], d, out)
+            discriminator_step(model, opts["D"], d, out, autocast)
 
-    one()  # warm-up: first-call allocations and oneDNN kernel selection
+    t = time.perf_counter()
+    for _ in range(warmup):  # first-call allocations, oneDNN kernel selection, compilation
+        one()
+    warm = time.perf_counter() - t
     t = time.perf_counter()
     for _ in range(steps):
         one()
-    return steps / (time.perf_counter() - t)
+    return steps / (time.perf_counter() - t), warm
+
+
+def step_rate(preset: str, sets: list[str], steps: int = 2) -> float:
+    """Steps per second of one training of `preset` with `sets`, after one warm-up step."""
+    return time_steps(preset, sets, steps)[0]
 
 
 def main() -> None:
