@@ -65,6 +65,11 @@ _SET_FIELDS = ("kind", "count", "seed", "cars", "envmaps")
 _SET_ROLES = ("--data", "--real", "--intrinsics")
 
 
+def _set_diff(a: dict | None, b: dict) -> list[str]:
+    """The fields of _SET_FIELDS in which dataset record `a` (missing: all) differs from `b`."""
+    return [k for k in _SET_FIELDS if a is None or a.get(k) != b.get(k)]
+
+
 def _read(path: Path) -> dict:
     f = path / "results.json" if path.is_dir() else path
     try:
@@ -93,14 +98,14 @@ def merge(parts: list[Path]) -> dict:
             if kind is None:
                 continue
             where, ref = trained_on.setdefault(kind, (path, d))
-            diff = [k for k in _SET_FIELDS if d.get(k) != ref.get(k)]
+            diff = _set_diff(d, ref)
             if diff:
                 raise ValueError(f"{path}: {d['role']} differ from {where}'s {ref['role']} in {', '.join(diff)}; "
                                  "parts of one seed must train on the same sets")
         sets = {d["role"]: d for d in data.get("datasets", []) if d.get("role") in _SET_ROLES}
         for role, ref in first.items():
             other = sets.get(role)
-            diff = [k for k in _SET_FIELDS if other is None or other.get(k) != ref.get(k)]
+            diff = _set_diff(other, ref)
             if diff:
                 raise ValueError(f"{path}: its {role} set differs from {parts[0]}'s in {', '.join(diff)}; "
                                  "parts of one seed must be evaluated on the same sets")
