@@ -322,8 +322,13 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
     else:  # CPUs differ by more than 2x: time a few steps of every run here, lanes side by side
         click.echo("  measuring each training's speed on this machine (3 steps per run) ...")
         rates = plan.measure_rates()
-        click.echo("  speed     " + ", ".join(f"{n} {rates[n] * 60:.0f}" for n in chosen) + " steps/min"
-                   + (f" ({plan.lanes()} side by side)" if plan.lanes() > 1 else ""))
+        done = {n: plan.steps_done(n) for n in chosen}
+        speeds = [f"{n} {rates[n] * 60:.0f}" + (f" (from step {done[n]})" if done[n] else "")
+                  for n in chosen if n in rates]
+        finished = [n for n in chosen if n not in rates]
+        click.echo("  speed     " + (", ".join(speeds) + " steps/min" if speeds else "nothing left to train")
+                   + (f" ({plan.lanes()} side by side)" if plan.lanes() > 1 and len(speeds) > 1 else "")
+                   + (f"; finished: {', '.join(finished)}" if finished else ""))
         click.echo(f"  expected  about {plan.estimate_minutes(rates):.0f} min (training from these speeds; "
                    "probes and checkpoints add a few percent)")
     if dry_run:

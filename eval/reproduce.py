@@ -152,11 +152,35 @@ class Plan:
         cmd = self.fit_command(name)
         return cmd[cmd.index("--config") + 1], [cmd[k + 1] for k in range(len(cmd)) if cmd[k] == "--set"]
 
+    def steps_done(self, name: str) -> int:
+        """The step of run `name`'s newest readable checkpoint in this plan's output (0: none):
+        a rerun resumes there, so only the steps after it take time."""
+        from train.checkpoint import CheckpointUnreadable, checkpoint_files, read_state
+
+        for path in checkpoint_files(self.out / "runs" / name / "checkpoints"):
+            try:
+                return int(read_state(path)["step"])
+            except CheckpointUnreadable:  # the trainer falls back to the next older one too
+                continue
+        return 0
+
+    def steps_left(self, name: str) -> int:
+        return max(0, self.budget.steps - self.steps_done(name))
+
+    def _data_left(self, folder: str) -> float:
+        """The fraction of dataset `folder` still to generate (generation resumes a partial one)."""
+        try:
+            info = json.loads((self.out / "data" / folder / "dataset.json").read_text())
+            return 0.0 if info.get("complete") else 1 - info["count"] / max(1, info["count_requested"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return 1.0
+
     def measure_rates(self, steps: int = 2) -> dict[str, float]:
-        """Steps per second of every run on this machine, measured `lanes()` at a time with the
+        """Steps per second of every run with steps left, measured `lanes()` at a time with the
         plan's threads each (eval.step_rate), as the trainings will run."""
-        lanes = self.lanes()
-        groups = [self.runs[k::lanes] for k in range(lanes)]
+        todo = [n for n in self.runs if self.steps_left(n)]
+        lanes = max(1, min(self.lanes(), len(todo)))
+        groups = [todo[k::lanes] for k in range(lanes)]
         env = dict(os.environ, OMP_NUM_THREADS=str(self.threads), MKL_NUM_THREADS=str(self.threads))
         procs = [subprocess.Popen([sys.executable, "-m", "eval.step_rate",
                                    json.dumps([[n, *self._config_args(n)] for n in group]), str(steps)],
@@ -172,22 +196,26 @@ class Plan:
         return rates
 
     def estimate_minutes(self, rates: dict[str, float] | None = None) -> float:
-        """Data, training and report time; training from `rates` (measured steps/s per run) when
-        given, else from the budget's fixed rate. Lanes take the next run as they free up."""
+        """Data, training and report time still to spend: training from `rates` (measured steps/s
+        per run) when given, else from the budget's fixed rate, for the steps after each run's
+        newest checkpoint; lanes take the next run as they free up. Data counts what is missing."""
         b = self.budget
         lanes = self.lanes()
+        left = {n: self.steps_left(n) for n in self.runs}
         if rates:
             busy = [0.0] * lanes
             for name in self.runs:
-                k = busy.index(min(busy))
-                busy[k] += b.steps / rates[name]
+                if left[name]:
+                    k = busy.index(min(busy))
+                    busy[k] += left[name] / rates[name]
             train = max(busy) / 60
         else:
-            train = len(self.runs) * b.steps / b.rate / 60 / lanes
-        data = (b.n_intrinsics / 30 + b.n_real * 0.7 * b.pbr_samples / 4 + b.n_eval * 1.2 + b.n_fid / 30) / 60
+            train = sum(left.values()) / b.rate / 60 / lanes
+        data = (b.n_intrinsics / 30 * self._data_left("intrinsics")
+                + b.n_real * 0.7 * b.pbr_samples / 4 * self._data_left("real")
+                + b.n_eval * 1.2 * self._data_left("eval") + b.n_fid / 30 * self._data_left("fid_intrinsics")) / 60
         report = (len(self.runs) * (b.n_eval + 2 * b.n_fid) / 9 + b.n_real / 9) / 60
         return train + data + report + 1
-
 
 def _term_with_parent() -> None:
     """In the child before exec: ask Linux for SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""

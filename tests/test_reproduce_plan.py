@@ -42,3 +42,27 @@ def test_dry_run_prints_the_measured_speeds():
     speed = next(line for line in proc.stdout.splitlines() if line.strip().startswith("speed"))
     assert "no_dec" in speed and "cyclegan" in speed and "steps/min" in speed
     assert "expected  about" in proc.stdout
+
+
+def _checkpoint(out: Path, name: str, step: int) -> None:
+    folder = out / "runs" / name / "checkpoints"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"step_{step:08d}.safetensors").write_bytes(b"")
+    (folder / f"step_{step:08d}.json").write_text(f'{{"step": {step}}}')
+
+
+def test_a_resumed_plan_counts_only_the_steps_left(tmp_path, monkeypatch):
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    plan = Plan(BUDGETS["smoke"], tmp_path, 0, 1, 1, 0, ["full", "no_dec"])
+    steps = plan.budget.steps
+    _checkpoint(tmp_path, "full", steps // 4)
+    _checkpoint(tmp_path, "no_dec", steps)
+    (tmp_path / "runs" / "no_dec" / "checkpoints" / f"step_{steps + 1:08d}.safetensors").write_bytes(b"")  # torn
+    assert (plan.steps_done("full"), plan.steps_left("full")) == (steps // 4, steps - steps // 4)
+    assert (plan.steps_done("no_dec"), plan.steps_left("no_dec")) == (steps, 0)
+    assert plan.steps_done("oracle") == 0
+    rates = {"full": steps / 60, "no_dec": steps / 60}  # a whole run: one minute each
+    fresh = Plan(BUDGETS["smoke"], tmp_path / "fresh", 0, 1, 1, 0, ["full", "no_dec"])
+    # fresh: 2 minutes of training; resumed: 3/4 of full's minute, none of no_dec's
+    assert fresh.estimate_minutes(rates) - plan.estimate_minutes(rates) == pytest.approx(1.25, abs=1e-6)
+    assert sorted(plan.measure_rates(steps=1)) == ["full"]  # a finished run is not timed
