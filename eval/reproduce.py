@@ -217,6 +217,7 @@ class Plan:
         report = (len(self.runs) * (b.n_eval + 2 * b.n_fid) / 9 + b.n_real / 9) / 60
         return train + data + report + 1
 
+
 def _term_with_parent() -> None:
     """In the child before exec: ask Linux for SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""
     import ctypes
