@@ -20,7 +20,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import OpenEXR
@@ -326,10 +326,11 @@ def folder_is_empty(root: Path) -> bool:
 
 
 @contextmanager
-def locked_folder(root: Path, option: str = "--out"):
+def locked_folder(root: Path, option: str = "--out", wait: Callable[[str], None] | None = None):
     """Hold an exclusive lock on a dataset folder while writing it.
 
-    A second writer fails at once with a message naming the process that holds the lock.
+    A second writer fails at once with a message naming the process that holds the lock, or,
+    given `wait`, is told who holds it (`wait(holder)`) and blocks until it is free.
     The lock is an advisory `flock` on `ROOT/.lock`: the kernel releases it when the holder
     exits however it dies, so a killed run never leaves the folder locked.
     """
@@ -346,8 +347,12 @@ def locked_folder(root: Path, option: str = "--out"):
             if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise
             holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
-            raise DatasetError(f"{option} {root} is being written by {holder}; wait for it to finish or choose "
-                               "another folder") from None
+            if wait is not None:
+                wait(holder)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            else:
+                raise DatasetError(f"{option} {root} is being written by {holder}; wait for it to finish or "
+                                   "choose another folder") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since "
                       f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)

@@ -253,6 +253,9 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
                    "sanity-smoke: the same at toy size.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: out/reproduce_BUDGET).")
+@click.option("--data", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Datasets folder (default: OUT/data): parts of one seed run in other --out folders can share "
+                   "one copy; reproduce runs on one --data take turns generating and checking it.")
 @click.option("--steps", type=click.IntRange(1), default=None, help="Training steps per run (budget's by default).")
 @click.option("--resolution", default=None, help="Training HEIGHTxWIDTH (the budget's by default).")
 @click.option("--intrinsics", "n_intrinsics", type=click.IntRange(2), default=None, help="Training intrinsics count.")
@@ -268,8 +271,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--run-seed", type=int, default=None,
               help="Seed of the trainings (default: --seed): another run seed on the same data.")
 @click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
-def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads, seed,
-                  run_seed, dry_run) -> None:
+def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads,
+                  seed, run_seed, dry_run) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     import os
     import shutil
@@ -278,6 +281,8 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
     from .reproduce import BUDGETS, RUNS, Plan, reproduce
 
     if budget.startswith("sanity"):
+        if data is not None:
+            raise click.BadParameter("the sanity settings make their own data in OUT/data", param_hint="--data")
         return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run)
     b = BUDGETS[budget]
     overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
@@ -306,7 +311,7 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
         click.echo(f"--jobs {jobs}: capped at {min(cores, len(chosen))} ({len(chosen)} run(s), {cores} core(s))")
         jobs = min(cores, len(chosen))
     plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed)
+                run_seed, data)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {b.n_real} real stand-in, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}")
@@ -314,7 +319,7 @@ def reproduce_cmd(budget, out, steps, resolution, n_intrinsics, n_real, n_eval, 
                f"{b.train[0]}x{b.train[1]}, batch {b.batch}")
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
                f"{jobs} training(s) at a time")
-    click.echo(f"  output    {plan.out}")
+    click.echo(f"  output    {plan.out}" + (f" (data in {plan.data_dir})" if data is not None else ""))
     with one_line_errors():
         plan.check_configs()
     if gpus:

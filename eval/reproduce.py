@@ -93,9 +93,14 @@ class Plan:
     gpus: int
     runs: list[str] = field(default_factory=list)
     run_seed: int | None = None  # the trainings' seed (default: `seed`, which also makes the data)
+    data: Path | None = None  # the datasets' folder (default: OUT/data); parts of one seed may share it
+
+    @property
+    def data_dir(self) -> Path:
+        return Path(self.data) if self.data is not None else self.out / "data"
 
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
-        b, o, s = self.budget, self.out / "data", self.seed
+        b, o, s = self.budget, self.data_dir, self.seed
         common = ["--resolution", b.render, "--workers", str(max(1, min(os.cpu_count() or 1, 8))), "--quiet"]
         return [
             ("training intrinsics (training cars, training skies)",
@@ -126,7 +131,7 @@ class Plan:
         if preset == "munit":  # MUNIT keeps its own schedule (step policy); only the length is shared
             sets = [x for x in sets if not x.startswith("optim.decay_start")]
         sets += list(extra)
-        data = self.out / "data"
+        data = self.data_dir
         cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(data / "real"),
                "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",
                "--probe", str(data / "eval")]  # the Table-3 set: curves of what the report will measure
@@ -170,7 +175,7 @@ class Plan:
     def _data_left(self, folder: str) -> float:
         """The fraction of dataset `folder` still to generate (generation resumes a partial one)."""
         try:
-            info = json.loads((self.out / "data" / folder / "dataset.json").read_text())
+            info = json.loads((self.data_dir / folder / "dataset.json").read_text())
             return 0.0 if info.get("complete") else 1 - info["count"] / max(1, info["count_requested"])
         except (OSError, ValueError, KeyError, TypeError):
             return 1.0
@@ -251,12 +256,19 @@ def _gen(args: list[str]) -> list[str]:
 
 
 def reproduce(plan: Plan, progress: bool = True) -> Path:
+    from blender_gen.dataset import locked_folder
+
     out, b = plan.out, plan.budget
     logs = out / "logs"
     t0 = time.time()
-    for k, (what, args) in enumerate(plan.dataset_commands(), 1):
-        click.echo(f"[data {k}/4] {what}")
-        _run(_gen(args), logs / "data.log")
+    # parts of one seed sharing --data take turns generating and checking it; the sets' own writer
+    # locks would make the second fail
+    with locked_folder(plan.data_dir, "--data",
+                       wait=lambda holder: click.echo(f"[data] waiting: {holder} is generating or checking "
+                                                      f"{plan.data_dir}")):
+        for k, (what, args) in enumerate(plan.dataset_commands(), 1):
+            click.echo(f"[data {k}/4] {what}")
+            _run(_gen(args), logs / "data.log")
 
     def train(name: str) -> str:
         start = time.time()
@@ -269,7 +281,7 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
         for k, done in enumerate(pool.map(train, plan.runs), 1):
             click.echo(f"[train {k}/{len(plan.runs)}] {done} done")
     click.echo("[report] decomposition, FID/KID, reference rows, pictures")
-    data = out / "data"
+    data = plan.data_dir
     report_dir = out / "report"
     _run([sys.executable, "-m", "eval.cli", "report", *[str(out / "runs" / r) for r in plan.runs], "--data",
           str(data / "eval"), "--real", str(data / "real"), "--intrinsics", str(data / "fid_intrinsics"),

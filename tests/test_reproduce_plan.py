@@ -1,6 +1,7 @@
 """`iae-eval reproduce`'s plan: the time estimate comes from speeds measured on this machine."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -66,3 +67,49 @@ def test_a_resumed_plan_counts_only_the_steps_left(tmp_path, monkeypatch):
     # fresh: 2 minutes of training; resumed: 3/4 of full's minute, none of no_dec's
     assert fresh.estimate_minutes(rates) - plan.estimate_minutes(rates) == pytest.approx(1.25, abs=1e-6)
     assert sorted(plan.measure_rates(steps=1)) == ["full"]  # a finished run is not timed
+
+
+def test_parts_sharing_a_data_folder_use_it(tmp_path):
+    shared = tmp_path / "shared"
+    plan = Plan(BUDGETS["smoke"], tmp_path / "part2", 0, 1, 1, 0, ["full"], data=shared)
+    outs = [args[args.index("--out") + 1] for _, args in plan.dataset_commands()]
+    assert outs == [str(shared / d) for d in ("intrinsics", "real", "eval", "fid_intrinsics")]
+    fit = plan.fit_command("full")
+    assert fit[fit.index("--intrinsics") + 1] == str(shared / "intrinsics")
+    assert fit[fit.index("--run-dir") + 1] == str(tmp_path / "part2" / "runs" / "full")
+    (shared / "eval").mkdir(parents=True)
+    (shared / "eval" / "dataset.json").write_text('{"complete": false, "count": 3, "count_requested": 6}')
+    assert plan._data_left("eval") == 0.5
+
+
+def test_a_waiting_lock_holder_blocks_until_the_first_lets_go(tmp_path):
+    import threading
+    import time
+
+    from blender_gen.dataset import DatasetError, locked_folder
+
+    inside, released, told = threading.Event(), [], []
+
+    def first():
+        with locked_folder(tmp_path, "--data"):
+            inside.set()
+            time.sleep(0.5)
+            released.append(time.monotonic())
+
+    t = threading.Thread(target=first)
+    t.start()
+    inside.wait(5)
+    with pytest.raises(DatasetError, match="is being written by pid"):  # without `wait`: fails at once
+        with locked_folder(tmp_path, "--data"):
+            pass
+    with locked_folder(tmp_path, "--data", wait=told.append):  # with it: told who, then waits its turn
+        entered = time.monotonic()
+    t.join()
+    assert released and entered >= released[0]
+    assert len(told) == 1 and told[0].startswith(f"pid {os.getpid()} on ")
+
+
+def test_the_sanity_settings_refuse_a_shared_data_folder(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "sanity-smoke", "--data",
+                           str(tmp_path), "--dry-run"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 2 and "--data" in proc.stderr and "OUT/data" in proc.stderr
