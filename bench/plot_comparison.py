@@ -1,6 +1,9 @@
 """Probe curves of the `cpu` comparison run as objective sweeps (bench/variants_cpu.toml) on a GPU.
 
   python bench/plot_comparison.py eval/results/cpu_gpu --out eval/results/cpu_gpu_curves.png
+  python bench/plot_comparison.py eval/results/cpu_new/s22 [more folders] --out curves.png
+Reads the sweeps' curve files (rows name their variant and seed) and `reproduce` runs' probe rows
+saved as NAME_sSEED_probe.jsonl (the name says which).
 Prints a Markdown table (the last probe row of every run, mean over seeds with the spread) and
 draws normals, albedo and reflection (and, for the curves that have them, R's and H's colour
 correlations) against the step, one colour per model, a line per seed.
@@ -9,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -17,12 +21,15 @@ METRICS = (("probe/normal_deg", "probe/const_normal_deg", "normals (deg)"),
            ("probe/reflection_l1", "probe/const_reflection_l1", "reflection L1 (0-255)"))
 
 
-def load(folder: Path) -> dict[str, dict[int, list[dict]]]:
+def load(*folders: Path) -> dict[str, dict[int, list[dict]]]:
     runs: dict[str, dict[int, list[dict]]] = defaultdict(dict)
-    for f in sorted(folder.glob("*.jsonl")):
+    for f in sorted(f for folder in folders for f in folder.glob("*.jsonl")):
         rows = [json.loads(x) for x in f.read_text().splitlines() if x.strip()]
-        if rows:
+        named = re.fullmatch(r"(.+)_s(\d+)_probe", f.stem)
+        if rows and "variant" in rows[0]:
             runs[rows[0]["variant"]][int(rows[0]["seed"])] = rows
+        elif rows and named:
+            runs[named.group(1)][int(named.group(2))] = rows
     return runs
 
 
@@ -49,11 +56,11 @@ def table(runs: dict[str, dict[int, list[dict]]], order: list[str]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("folder", type=Path)
+    ap.add_argument("folders", type=Path, nargs="+")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--only", nargs="*", default=None, help="models to draw (default: all, in file order)")
     a = ap.parse_args()
-    runs = load(a.folder)
+    runs = load(*a.folders)
     order = a.only or list(runs)
     print(table(runs, order))
     if a.out is None:

@@ -139,8 +139,10 @@ def orderings(rows: dict[str, Seeded]) -> list[str]:
     full = rows[FULL]
     out = []
     spread = {c: [v for v in full.values[c] if v is not None] for c, _ in COLUMNS}
+    spread = {c: v for c, v in spread.items() if len(v) > 1}
     out.append("the full model's spread across seeds (max - min): " + ", ".join(
-        f"{c} {max(v) - min(v):.1f}" for c, v in spread.items() if len(v) > 1))
+        f"{c} {max(v) - min(v):.1f}" for c, v in spread.items()) if spread else
+        "one seed: no spread yet, so no ordering below is settled")
     for other in (CONSTANT,) + PAPER_AHEAD_OF:
         if other not in rows:
             continue

@@ -34,6 +34,7 @@ def test_orderings_are_held_only_when_every_seed_agrees(tmp_path):
     assert "full better than Ours, w/o shared discr. on albedo L1: holds (margins 7.0 / 5.0)" in text
     assert "full better than Ours, w/o shared discr. on reflection L1: holds on 1 of 2 seeds" in text
     assert "spread across seeds (max - min): normals (deg) 1.0, albedo L1 3.0" in text
+    assert "one seed: no spread yet" in compare([a])  # one seed settles nothing: said, not left blank
 
 
 def test_a_folder_without_a_report_is_a_clear_error(tmp_path):
