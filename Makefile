@@ -49,8 +49,11 @@ REPRO_ARGS ?=
 reproduce: $(STAMP)
 	$(VENV)/bin/iae-eval reproduce --budget $(BUDGET) $(REPRO_ARGS)
 
+# One pytest-xdist worker per core, each test module whole in one worker (module fixtures such as
+# a trained run or Blender's one scene per process stay shared); TEST_JOBS=0 runs in-process.
+TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 bench: $(STAMP)
 	$(PY) bench/bench_generate.py
