@@ -1,5 +1,7 @@
 """Evaluation benchmark: images/s of FID feature extraction and of the decomposition
-evaluation (H of a cpu-small run + scoring, and scoring alone) at 512x256 on this CPU.
+evaluation (H of a cpu-small run + scoring, and scoring alone) at 512x256 on this CPU, and the
+seconds of one FID statistic from features (this project's nuclear-norm form against
+torchmetrics' eigen-solve) at a CPU report's size (400 real, 200 fake) and at 2048 + 2048.
 Prints measured figures. Usage: python bench/bench_eval.py [--images 48]
 """
 from __future__ import annotations
@@ -18,11 +20,37 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from eval.decomposition import score_predictions  # noqa: E402
-from eval.fid import InceptionFeatures, extract  # noqa: E402
+from eval.fid import InceptionFeatures, extract, fid_from_features  # noqa: E402
 from tests.train_helpers import tiny_intrinsics, tiny_photos  # noqa: E402
 from train.config import load_config  # noqa: E402
 from train.inference import decompose_images  # noqa: E402
 from train.loop import fit  # noqa: E402
+
+
+def _fid_torchmetrics(real: np.ndarray, fake: np.ndarray) -> float:
+    import torch
+    from torchmetrics.image.fid import _compute_fid
+
+    r, f = torch.from_numpy(real).double(), torch.from_numpy(fake).double()
+    return float(_compute_fid(r.mean(0), torch.cov(r.T), f.mean(0), torch.cov(f.T)))
+
+
+def fid_statistic_seconds() -> dict:
+    rng = np.random.default_rng(0)
+    out = {}
+    for n_real, n_fake in ((400, 200), (2048, 2048)):
+        real = np.abs(rng.normal(size=(n_real, 2048)))  # pool features are non-negative
+        fake = np.abs(rng.normal(0.1, 1.1, size=(n_fake, 2048)))
+        row = {}
+        for name, fn in (("nuclear_norm", fid_from_features), ("torchmetrics", _fid_torchmetrics)):
+            t = time.perf_counter()
+            value = fn(real, fake)
+            row[name] = {"seconds": time.perf_counter() - t, "fid": value}
+        print(f"FID statistic, {n_real} + {n_fake} features: nuclear norm {row['nuclear_norm']['seconds']:.2f} s, "
+              f"torchmetrics {row['torchmetrics']['seconds']:.2f} s (values {row['nuclear_norm']['fid']:.4f} / "
+              f"{row['torchmetrics']['fid']:.4f})", flush=True)
+        out[f"{n_real}+{n_fake}"] = row
+    return out
 
 
 def main() -> None:
@@ -53,7 +81,8 @@ def main() -> None:
         score_ips = n / (time.perf_counter() - t)
         print(f"decomposition evaluation 512x256 (cpu-small H at 64x128, upsampled, EXR out, scored): "
               f"{full_ips:.1f} images/s; scoring alone {score_ips:.1f} images/s", flush=True)
-        print(json.dumps({"fid_features_images_per_s": fid_ips, "decomposition_eval_images_per_s": full_ips,
+        fid_stat = fid_statistic_seconds()
+        print(json.dumps({"fid_statistic": fid_stat, "fid_features_images_per_s": fid_ips, "decomposition_eval_images_per_s": full_ips,
                           "scoring_images_per_s": score_ips}, indent=2))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

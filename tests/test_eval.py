@@ -30,6 +30,22 @@ def test_fid_matches_scipy_sqrtm_and_is_zero_for_identical_sets():
     assert abs(fid_from_features(a, a)) < 1e-6
 
 
+def test_fid_of_fewer_images_than_feature_dimensions_matches_the_symmetric_form():
+    # a CPU report has a few hundred images of 2048 features: both covariances are rank-deficient
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(30, 64))
+    b = rng.normal(0.2, 0.8, size=(20, 64)) @ rng.normal(size=(64, 64)) / 8
+    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    w, v = np.linalg.eigh(s1)
+    root = (v * np.sqrt(np.clip(w, 0, None))) @ v.T  # S1^(1/2) S2 S1^(1/2) has the eigenvalues of S1 S2
+    covmean_trace = np.sqrt(np.clip(np.linalg.eigvalsh(root @ s2 @ root), 0, None)).sum()
+    expected = np.sum((a.mean(0) - b.mean(0)) ** 2) + np.trace(s1) + np.trace(s2) - 2 * covmean_trace
+    assert fid_from_features(a, b) == pytest.approx(expected, rel=1e-6)
+    assert abs(fid_from_features(a, a)) < 1e-6
+    with pytest.raises(ValueError, match="one width"):
+        fid_from_features(a, b[:, :32])
+
+
 def _mmd_unbiased(x, y):
     d = x.shape[1]
     k = lambda p, q: (p @ q.T / d + 1.0) ** 3  # noqa: E731
