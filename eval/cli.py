@@ -156,19 +156,34 @@ def seeds(reports, out) -> None:
 @click.argument("parts", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="The joined results.json (name it for the seed: `iae-eval seeds` labels it by its name).")
-def merge(parts, out) -> None:
+@click.option("--grids", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also draw the joined report's pictures here: render_grid.png (R's renders of the same unseen "
+                   "intrinsics by every run) and decomposition_grid.png (every run's H on the same Table-3 images). "
+                   "Needs the parts' report folders and the sets they name.")
+@click.option("--grid-rows", type=click.IntRange(1), default=4, show_default=True,
+              help="Inputs per grid.")
+def merge(parts, out, grids, grid_rows) -> None:
     """Join reports of disjoint runs of one seed (e.g. made in different sessions) into one
     results.json for `iae-eval seeds`. PARTS: report folders or their results.json; they must have
     been evaluated on the same sets."""
-    from blender_gen.dataset import atomic_write_json
+    from blender_gen.dataset import atomic_write_json, save_png
 
     from .seeds import merge as merge_parts
 
     with one_line_errors():
         joined = merge_parts(list(parts))
+        if grids is not None:
+            from .report import merged_grids
+
+            renders, decomposition = merged_grids(list(parts), grid_rows)
     atomic_write_json(out, joined)
     click.echo(f"{out}: {len(joined['runs'])} runs ({', '.join(r['label'] for r in joined['runs'])}) "
                f"from {len(parts)} part(s)")
+    if grids is not None:
+        grids.mkdir(parents=True, exist_ok=True)
+        save_png(grids / "render_grid.png", renders)
+        save_png(grids / "decomposition_grid.png", decomposition)
+        click.echo(f"{grids / 'render_grid.png'}, {grids / 'decomposition_grid.png'}")
 
 
 @main.command()

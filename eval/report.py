@@ -237,6 +237,77 @@ def render_grid_png(entries, intrinsics: Path, grid: int, tile: tuple[int, int] 
     return np.asarray(sheet)
 
 
+def _part_folder(part: Path) -> Path:
+    part = Path(part)
+    return part.parent if part.name == "results.json" else part
+
+
+def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256, 128)) -> tuple[np.ndarray, np.ndarray]:
+    """The pictures of one report drawn from several (the parts of one seed, `iae-eval merge`):
+    R's renders of the same unseen intrinsics by every run, then each run's decomposition of the
+    same Table-3 images (image, ground truth, then one column per run; a row per layer).
+
+    Needs the parts' report folders (their runs/NN_name/rendered and predictions), and the
+    --intrinsics and --data sets they name on this machine.
+    """
+    entries, sets = [], {}
+    for part in parts:
+        folder = _part_folder(part)
+        data = json.loads((folder / "results.json").read_text())
+        for d in data.get("datasets", []):
+            sets.setdefault(d.get("role"), Path(d["path"]))
+        for k, run in enumerate(data.get("runs", [])):
+            found = sorted((folder / "runs").glob(f"{k:02d}_*"))
+            if not found or not (found[0] / "rendered").is_dir() or not (found[0] / "predictions").is_dir():
+                raise ValueError(f"{folder / 'runs'}/{k:02d}_*: no rendered/ and predictions/ of run '{run['label']}'; "
+                                 "the grids need the parts' report folders, not only their results.json")
+            entries.append({"label": run["label"], "rendered": sorted((found[0] / "rendered").glob("*.png"))[:rows],
+                            "pred_dir": found[0] / "predictions"})
+    copies = _part_folder(parts[0]) / "runs" / "reference" / "albedo"
+    if copies.is_dir():
+        entries.append({"label": "Albedo copy (no renderer)", "rendered": sorted(copies.glob("*.png"))[:rows],
+                        "pred_dir": None})
+    for role in ("--intrinsics", "--data"):
+        if role not in sets or not sets[role].is_dir():
+            raise ValueError(f"{_part_folder(parts[0]) / 'results.json'}: its {role} set "
+                             f"{sets.get(role, '(not named)')} is not on this machine; the grids draw its images")
+    renders = render_grid_png(entries, sets["--intrinsics"], rows, tile)
+    return renders, decomposition_grid_png([e for e in entries if e["pred_dir"]], sets["--data"], rows, tile)
+
+
+def decomposition_grid_png(entries, data: Path, rows: int, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
+    """Per Table-3 image three rows (normal, albedo, reflection): the image, the ground truth, then
+    every run's prediction of that layer, each column labelled."""
+    from PIL import ImageDraw
+
+    gt_ds = open_dataset(data, kinds=("pbr",))
+    preds = []
+    for e in entries:
+        ds = open_dataset(e["pred_dir"])
+        preds.append((ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
+    w, h = tile
+    labels = ["image", "ground truth"] + [e["label"] for e in entries]
+    n = min(rows, len(gt_ds))
+    sheet = Image.new("RGB", (w * len(labels), 18 + h * 3 * n), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for c, text in enumerate(labels):
+        draw.text((c * w + 4, 3), text[:40], fill=(0, 0, 0))
+    for j in range(n):
+        gt = gt_ds.load(j)
+        index = gt_ds.rows[j]["index"]
+        img = Image.fromarray((np.clip(linear_to_srgb(gt["rgb"]), 0, 1) * 255 + 0.5).astype(np.uint8))
+        sheet.paste(img.resize(tile, Image.Resampling.BILINEAR), (0, 18 + 3 * j * h))
+        loaded = [ds.load(pos[index]) if index in pos else None for ds, pos in preds]
+        for r, layer in enumerate(INTRINSIC_LAYERS):
+            y = 18 + (3 * j + r) * h
+            cells = [gt[layer]] + [p[layer] if p is not None else None for p in loaded]
+            for c, arr in enumerate(cells, start=1):
+                t = Image.fromarray(preview_srgb8(layer, arr)) if arr is not None else Image.new("RGB", tile)
+                sheet.paste(t.resize(tile, Image.Resampling.BILINEAR), (c * w, y))
+            draw.text((w + 4, y + 3), layer, fill=(255, 255, 255))
+    return np.asarray(sheet)
+
+
 def _table1(entries) -> tuple[list[str], list[list[str]]]:
     head = ["Run", "Config", "Step", "FID", "KID x100", "KID (raw)", "images (real/fake)", "paper FID / KID x100"]
     rows = []

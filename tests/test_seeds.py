@@ -109,3 +109,55 @@ def test_merged_parts_feed_the_seeds_comparison(tmp_path):
     assert "full better than Ours, w/o A on normals (deg): fails (margins -3.0)" in text
     bad = CliRunner().invoke(main, ["merge", str(a), str(a), "--out", str(tmp_path / "x.json")])
     assert bad.exit_code != 0 and "also in" in bad.output and not (tmp_path / "x.json").exists()
+
+
+def test_merge_draws_the_joined_reports_pictures_from_the_parts_folders(tmp_path):
+    """`merge --grids`: R's renders of every part's runs side by side, and every run's H on the
+    same Table-3 images, from the parts' report folders (no model is loaded)."""
+    import shutil
+
+    import numpy as np
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from eval.cli import main
+
+    from .train_helpers import tiny_intrinsics
+
+    intr = tiny_intrinsics(tmp_path / "fid_intrinsics", n=3, seed=4)
+    pbr = tiny_intrinsics(tmp_path / "table3", n=2, seed=5, kind="pbr")
+    colours = {"Ours (full)": (200, 30, 30), "Ours, w/o A": (30, 200, 30)}
+    parts = []
+    for name, (label, colour) in zip(("p1", "p2"), colours.items()):
+        folder = _part(tmp_path / name, [(label, 38.0)])
+        info = json.loads((folder / "results.json").read_text())
+        for d in info["datasets"]:  # the sets a report of these parts was evaluated on
+            d["path"] = str({"--intrinsics": intr, "--data": pbr}.get(d["role"], d["path"]))
+        (folder / "results.json").write_text(json.dumps(info))
+        run = folder / "runs" / f"00_{name}"
+        (run / "rendered").mkdir(parents=True)
+        for j in range(3):
+            Image.new("RGB", (64, 32), colour).save(run / "rendered" / f"{j:06d}.png")
+        shutil.copytree(pbr, run / "predictions")  # perfect predictions
+        parts.append(folder)
+    out = tmp_path / "grids"
+    res = CliRunner().invoke(main, ["merge", *map(str, parts), "--out", str(tmp_path / "s.json"), "--grids", str(out),
+                                    "--grid-rows", "2"])
+    assert res.exit_code == 0, res.output
+    renders = np.asarray(Image.open(out / "render_grid.png"))
+    assert renders.shape == (18 + 2 * 128, 256 * (3 + 2), 3)  # normal, albedo, reflection, then the two runs
+    for c, colour in enumerate(colours.values(), start=3):
+        assert np.abs(renders[18 + 64, c * 256 + 128].astype(int) - colour).max() <= 2
+    dec = np.asarray(Image.open(out / "decomposition_grid.png"))
+    assert dec.shape == (18 + 2 * 3 * 128, 256 * (2 + 2), 3)  # image, ground truth, then the two runs
+    truth, first_run = dec[18:, 256:512].astype(int), dec[18:, 512:768].astype(int)
+    truth[:, :60], first_run[:, :60] = 0, 0  # the layer names are written over the truth column
+    assert np.abs(truth - first_run).mean() < 1.0  # perfect predictions look like the truth
+    # a results.json without its report folder cannot be drawn: a clear error, nothing written
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(parts[1] / "results.json", lone / "results.json")
+    bad = CliRunner().invoke(main, ["merge", str(parts[0]), str(lone), "--out", str(tmp_path / "t.json"),
+                                    "--grids", str(tmp_path / "g2")])
+    assert bad.exit_code != 0 and "no rendered/ and predictions/ of run 'Ours, w/o A'" in bad.output
+    assert not (tmp_path / "t.json").exists() and not (tmp_path / "g2").exists()
