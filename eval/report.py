@@ -29,6 +29,7 @@ from train.run_folder import RunFolder  # noqa: E402
 from .decomposition import score_predictions, write_results  # noqa: E402
 from .fid import FID_MIN_IMAGES, InceptionFeatures, compare_sets, extract  # noqa: E402
 from .images import image_source  # noqa: E402
+from .paper_figures import PAPER_TABLE1, PAPER_TABLE3  # noqa: E402
 
 
 def run_label(cfg: Config) -> str:
@@ -77,12 +78,6 @@ def loss_plot(rows: list[dict], title: str) -> bytes:
     return buf.getvalue()
 
 
-# The paper's figures (Tables 1 and 3), printed beside ours for reference, keyed by run_label.
-PAPER_TABLE1 = {"CycleGAN": (103.3, 10.2), "MUNIT": (99.0, 13.5), "Ours (full)": (47.6, 4.2),
-                "Ours, w/o shared discr.": (59.2, 4.8), "Ours, w/o decomp. cycle": (99.6, 11.8),
-                "Ours, w/o A": (88.7, 5.4), "Ours, w/o N": (60.2, 4.9), "Ours, w/o F": (56.7, 5.9)}
-PAPER_TABLE3 = {"Ours, w/o shared discr.": (17.75, 54.00, 55.60), "Ours, w/o decomp. cycle": (18.80, 67.21, 71.00),
-                "CycleGAN": (27.82, 68.18, 73.18), "MUNIT": (29.15, 81.44, 74.75), "Ours (full)": (14.73, 52.74, 51.74)}
 
 
 def _cache_key(run: Path, checkpoint: Path, cfg, data: Path, limit: int | None) -> dict:

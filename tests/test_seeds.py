@@ -31,7 +31,8 @@ def test_orderings_are_held_only_when_every_seed_agrees(tmp_path):
     assert "| Ours (full) | 38.0 / 37.0 | 42.0 / 45.0 | 36.0 / 37.0 | 200.0 / 200.0 | 20.0 / 20.0 |" in text
     assert "full better than Constant predictor on normals (deg): holds (margins 2.0 / 3.0)" in text
     assert "full better than Ours, w/o shared discr. on normals (deg): holds on 1 of 2 seeds (margins 1.0 / -1.0)" in text
-    assert "full better than Ours, w/o shared discr. on albedo L1: holds (margins 7.0 / 5.0)" in text
+    assert "full better than Ours, w/o shared discr. on albedo L1: holds (margins 7.0 / 5.0); paper: 52.74 against 54" in text
+    assert "full better than Constant predictor on normals (deg): holds (margins 2.0 / 3.0)\n" in text  # no paper row
     assert "full better than Ours, w/o shared discr. on reflection L1: holds on 1 of 2 seeds" in text
     assert "spread across seeds (max - min): normals (deg) 1.0, albedo L1 3.0" in text
     assert "one seed: no spread yet" in compare([a])  # one seed settles nothing: said, not left blank
@@ -106,7 +107,7 @@ def test_merged_parts_feed_the_seeds_comparison(tmp_path):
     assert "2 runs (Ours (full), Ours, w/o A) from 2 part(s)" in res.output
     text = CliRunner().invoke(main, ["seeds", str(tmp_path / "cpu_s22.json")]).output
     assert "Seeds, in this order: cpu_s22" in text
-    assert "full better than Ours, w/o A on normals (deg): fails (margins -3.0)" in text
+    assert "full better than Ours, w/o A on normals (deg): fails (margins -3.0); the paper has no figure for it" in text
     bad = CliRunner().invoke(main, ["merge", str(a), str(a), "--out", str(tmp_path / "x.json")])
     assert bad.exit_code != 0 and "also in" in bad.output and not (tmp_path / "x.json").exists()
 
