@@ -197,6 +197,7 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
                                       feat, real_feats[size], progress)
     datasets = [v.summary() for v in sets.values()]
     save_png(out / "render_grid.png", render_grid_png(entries, Path(intrinsics), grid))
+    save_png(out / "decomposition_grid.png", decomposition_grid_png([e for e in entries if e["pred_dir"]], Path(data), grid))
     page = _html(entries, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
     atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
