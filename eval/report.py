@@ -197,8 +197,9 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
                                       feat, real_feats[size], progress)
     datasets = [v.summary() for v in sets.values()]
     save_png(out / "render_grid.png", render_grid_png(entries, Path(intrinsics), grid))
-    save_png(out / "decomposition_grid.png", decomposition_grid_png([e for e in entries if e["pred_dir"]], Path(data), grid))
-    page = _html(entries, data, real, Path(intrinsics), grid, datasets, warnings)
+    tiles = decomposition_tiles(entries, Path(data), grid)
+    save_png(out / "decomposition_grid.png", decomposition_grid_png(tiles))
+    page = _html(entries, tiles, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
     atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
     atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in ("run", "label", "step", "dec", "fid")}
@@ -233,11 +234,6 @@ def render_grid_png(entries, intrinsics: Path, grid: int, tile: tuple[int, int] 
     return np.asarray(sheet)
 
 
-def _part_folder(part: Path) -> Path:
-    part = Path(part)
-    return part.parent if part.name == "results.json" else part
-
-
 def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256, 128)) -> tuple[np.ndarray, np.ndarray]:
     """The pictures of one report drawn from several (the parts of one seed, `iae-eval merge`):
     R's renders of the same unseen intrinsics by every run, then each run's decomposition of the
@@ -246,10 +242,12 @@ def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256,
     Needs the parts' report folders (their runs/NN_name/rendered and predictions), and the
     --intrinsics and --data sets they name on this machine.
     """
+    from .seeds import _read
+
+    folders = [Path(p).parent if Path(p).name == "results.json" else Path(p) for p in parts]
     entries, sets = [], {}
-    for part in parts:
-        folder = _part_folder(part)
-        data = json.loads((folder / "results.json").read_text())
+    for folder in folders:
+        data = _read(folder)
         for d in data.get("datasets", []):
             sets.setdefault(d.get("role"), Path(d["path"]))
         for k, run in enumerate(data.get("runs", [])):
@@ -259,44 +257,55 @@ def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256,
                                  "the grids need the parts' report folders, not only their results.json")
             entries.append({"label": run["label"], "rendered": sorted((found[0] / "rendered").glob("*.png"))[:rows],
                             "pred_dir": found[0] / "predictions"})
-    copies = _part_folder(parts[0]) / "runs" / "reference" / "albedo"
+    copies = folders[0] / "runs" / "reference" / "albedo"
     if copies.is_dir():
         entries.append({"label": "Albedo copy (no renderer)", "rendered": sorted(copies.glob("*.png"))[:rows],
                         "pred_dir": None})
     for role in ("--intrinsics", "--data"):
         if role not in sets or not sets[role].is_dir():
-            raise ValueError(f"{_part_folder(parts[0]) / 'results.json'}: its {role} set "
+            raise ValueError(f"{folders[0] / 'results.json'}: its {role} set "
                              f"{sets.get(role, '(not named)')} is not on this machine; the grids draw its images")
     renders = render_grid_png(entries, sets["--intrinsics"], rows, tile)
-    return renders, decomposition_grid_png([e for e in entries if e["pred_dir"]], sets["--data"], rows, tile)
+    return renders, decomposition_grid_png(decomposition_tiles(entries, sets["--data"], rows), tile)
 
 
-def decomposition_grid_png(entries, data: Path, rows: int, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
-    """Per Table-3 image three rows (normal, albedo, reflection): the image, the ground truth, then
-    every run's prediction of that layer, each column labelled."""
-    from PIL import ImageDraw
-
+def decomposition_tiles(entries, data: Path, rows: int) -> dict:
+    """The decomposition grid's content, loaded once for the HTML page and the PNG: per Table-3
+    image its sRGB picture, its ground truth and every predicting run's layers (None where a run
+    has no prediction of that image)."""
     gt_ds = open_dataset(data, kinds=("pbr",))
     preds = []
     for e in entries:
-        ds = open_dataset(e["pred_dir"])
-        preds.append((ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
+        if e["pred_dir"] is not None:
+            ds = open_dataset(e["pred_dir"])
+            preds.append((ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
+    images = []
+    for j in range(min(rows, len(gt_ds))):
+        gt = gt_ds.load(j)
+        index = gt_ds.rows[j]["index"]
+        images.append({"image": (linear_to_srgb(gt["rgb"]) * 255 + 0.5).astype(np.uint8),
+                       "truth": {k: gt[k] for k in INTRINSIC_LAYERS},
+                       "predictions": [ds.load(pos[index]) if index in pos else None for ds, pos in preds]})
+    return {"labels": [e["label"] for e in entries if e["pred_dir"] is not None], "images": images}
+
+
+def decomposition_grid_png(tiles: dict, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
+    """Per Table-3 image three rows (normal, albedo, reflection): the image, the ground truth, then
+    every run's prediction of that layer, each column labelled (`tiles` from decomposition_tiles)."""
+    from PIL import ImageDraw
+
     w, h = tile
-    labels = ["image", "ground truth"] + [e["label"] for e in entries]
-    n = min(rows, len(gt_ds))
+    labels = ["image", "ground truth"] + tiles["labels"]
+    n = len(tiles["images"])
     sheet = Image.new("RGB", (w * len(labels), 18 + h * 3 * n), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     for c, text in enumerate(labels):
         draw.text((c * w + 4, 3), text[:40], fill=(0, 0, 0))
-    for j in range(n):
-        gt = gt_ds.load(j)
-        index = gt_ds.rows[j]["index"]
-        img = Image.fromarray((np.clip(linear_to_srgb(gt["rgb"]), 0, 1) * 255 + 0.5).astype(np.uint8))
-        sheet.paste(img.resize(tile, Image.Resampling.BILINEAR), (0, 18 + 3 * j * h))
-        loaded = [ds.load(pos[index]) if index in pos else None for ds, pos in preds]
+    for j, item in enumerate(tiles["images"]):
+        sheet.paste(Image.fromarray(item["image"]).resize(tile, Image.Resampling.BILINEAR), (0, 18 + 3 * j * h))
         for r, layer in enumerate(INTRINSIC_LAYERS):
             y = 18 + (3 * j + r) * h
-            cells = [gt[layer]] + [p[layer] if p is not None else None for p in loaded]
+            cells = [item["truth"][layer]] + [p[layer] if p is not None else None for p in item["predictions"]]
             for c, arr in enumerate(cells, start=1):
                 t = Image.fromarray(preview_srgb8(layer, arr)) if arr is not None else Image.new("RGB", tile)
                 sheet.paste(t.resize(tile, Image.Resampling.BILINEAR), (c * w, y))
@@ -390,7 +399,7 @@ def _img(src: str, alt: str) -> str:
     return f'<img src="{src}" alt="{html.escape(alt)}">'
 
 
-def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets: list[dict],
+def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: int, datasets: list[dict],
           warnings: list[str]) -> str:
     def table(head, rows):
         th = "".join(f"<th>{html.escape(h)}</th>" for h in head)
@@ -411,27 +420,17 @@ def _html(entries, data: Path, real: Path, intrinsics: Path, grid: int, datasets
     ren_head = "".join(f"<th>{h}</th>" for h in ["normal", "albedo", "reflection"] + [html.escape(e["label"]) for e in renderers])
 
     # decomposition grid: image and ground truth, then each run's prediction
-    gt_ds = open_dataset(data, kinds=("pbr",))
-    preds = []
-    for e in entries:
-        if e["pred_dir"] is None:
-            continue
-        ds = open_dataset(e["pred_dir"])
-        preds.append((e, ds, {r["index"]: k for k, r in enumerate(ds.rows)}))
     dec_rows = []
-    for j in range(min(grid, len(gt_ds))):
-        gt = gt_ds.load(j)
-        img = (linear_to_srgb(gt["rgb"]) * 255 + 0.5).astype(np.uint8)
-        cells = [f"<th>image &amp; ground truth</th><td>{_img(_data_uri(_png_bytes(img)), 'input image')}</td>"]
-        cells += [f"<td>{_img(_data_uri(_png_bytes(preview_srgb8(k, gt[k]))), 'ground truth ' + k)}</td>" for k in INTRINSIC_LAYERS]
+    for item in tiles["images"]:
+        cells = [f"<th>image &amp; ground truth</th><td>{_img(_data_uri(_png_bytes(item['image'])), 'input image')}</td>"]
+        cells += [f"<td>{_img(_data_uri(_png_bytes(preview_srgb8(k, item['truth'][k]))), 'ground truth ' + k)}</td>"
+                  for k in INTRINSIC_LAYERS]
         dec_rows.append("<tr>" + "".join(cells) + "</tr>")
-        index = gt_ds.rows[j]["index"]
-        for e, pred_ds, pos in preds:
-            if index not in pos:
+        for label, pred in zip(tiles["labels"], item["predictions"]):
+            if pred is None:
                 continue
-            pred = pred_ds.load(pos[index])
-            cells = [f"<th>{html.escape(e['label'])}</th><td></td>"]
-            cells += [f"<td>{_img(_data_uri(_png_bytes(preview_srgb8(k, pred[k]))), e['label'] + ' ' + k)}</td>"
+            cells = [f"<th>{html.escape(label)}</th><td></td>"]
+            cells += [f"<td>{_img(_data_uri(_png_bytes(preview_srgb8(k, pred[k]))), label + ' ' + k)}</td>"
                       for k in INTRINSIC_LAYERS]
             dec_rows.append("<tr>" + "".join(cells) + "</tr>")
 
