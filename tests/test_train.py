@@ -316,6 +316,14 @@ def test_settings_a_model_kind_ignores_or_out_of_range_are_refused(preset, setti
         load_config(preset, [setting])
 
 
+def test_sections_a_model_kind_never_reads_are_named():
+    from train.config import unread_sections
+
+    assert unread_sections(load_config("cyclegan")) == ["model (all but model.kind)", "loss", "munit"]
+    assert unread_sections(load_config("munit")) == ["model (all but model.kind)", "loss", "cyclegan"]
+    assert unread_sections(load_config("paper")) == ["cyclegan", "munit"]
+
+
 def test_every_value_of_the_paper_preset_says_where_it_comes_from():
     from train.config import PRESETS_DIR
 
@@ -347,7 +355,8 @@ def test_a_failed_start_does_not_poison_the_run_folder(data, tmp_path):
     (run / "training_options.json").write_text(json.dumps({"config": tiny_cfg().to_dict(), "intrinsics": str(intr),
                                                            "real": str(photos)}))
     _run(*_fit_args(data, run, "--max-steps", "2", "--set", "optim.lr=1e-3"))
-    assert json.loads((run / "training_options.json").read_text())["config"]["optim"]["lr"] == 1e-3
+    opts = json.loads((run / "training_options.json").read_text())
+    assert opts["config"]["optim"]["lr"] == 1e-3 and opts["sections_not_read"] == ["cyclegan", "munit"]
 
 
 def test_resume_survives_torn_stats_and_truncated_checkpoints(data, tmp_path):

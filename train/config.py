@@ -276,6 +276,14 @@ def _ignored_settings(cfg: Config) -> list[str]:
     return out
 
 
+def unread_sections(cfg: Config) -> list[str]:
+    """The config sections this model kind never reads (kept at their defaults by validate), named in
+    training_options.json so that a reader of a baseline's run does not take them for its settings."""
+    used = KIND_SECTIONS[cfg.model.kind]
+    return [("model (all but model.kind)" if s == "model" else s)
+            for s in ("model", "loss", "cyclegan", "munit") if s not in used]
+
+
 def validate(cfg: Config) -> Config:
     """Every value in range and every setting read by the chosen model kind; checked before any file is written."""
     m, lo, o = cfg.model, cfg.loss, cfg.optim

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
 from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
-from .config import Config, ConfigError, config_from_dict
+from .config import Config, ConfigError, config_from_dict, unread_sections
 from .data import CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, infinite_loader
 from .model import build_model
 from .probe import evaluate_probe, probe_plot
@@ -181,7 +181,8 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
     check_data(cfg, intrinsics, real)
     if probe:
         check_probe(probe)
-    opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve())}
+    opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve()),
+            "sections_not_read": unread_sections(cfg)}
     if probe:
         opts["probe"] = str(Path(probe).resolve())
     run_dir.mkdir(parents=True, exist_ok=True)
