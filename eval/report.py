@@ -242,12 +242,12 @@ def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256,
     Needs the parts' report folders (their runs/NN_name/rendered and predictions), and the
     --intrinsics and --data sets they name on this machine.
     """
-    from .seeds import _read
+    from .seeds import read_results
 
     folders = [Path(p).parent if Path(p).name == "results.json" else Path(p) for p in parts]
     entries, sets = [], {}
     for folder in folders:
-        data = _read(folder)
+        data = read_results(folder)
         for d in data.get("datasets", []):
             sets.setdefault(d.get("role"), Path(d["path"]))
         for k, run in enumerate(data.get("runs", [])):

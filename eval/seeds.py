@@ -49,7 +49,7 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
     names = []
     for k, path in enumerate(paths):
         f = path / "results.json" if path.is_dir() else path
-        data = _read(path)
+        data = read_results(path)
         folder = f.parent if f.name == "results.json" else f.with_suffix("")
         names.append(folder.parent.name if folder.name == "report" else folder.name)  # reproduce's OUT/report
         for entry in data.get("runs", []) + data.get("references", []):
@@ -73,7 +73,9 @@ def _set_diff(a: dict | None, b: dict) -> list[str]:
     return [k for k in _SET_FIELDS if a is None or a.get(k) != b.get(k)]
 
 
-def _read(path: Path) -> dict:
+def read_results(path: Path) -> dict:
+    """A report's results.json (the file, or the report folder holding it); a one-line error names
+    the file when it is missing or not JSON."""
     f = path / "results.json" if path.is_dir() else path
     try:
         return json.loads(f.read_text())
@@ -87,7 +89,7 @@ def merge(parts: list[Path]) -> dict:
     predictor, albedo copy) come from the first part."""
     if not parts:
         raise ValueError("merge: no reports given")
-    datas = [_read(p) for p in parts]
+    datas = [read_results(p) for p in parts]
     first = {d["role"]: d for d in datas[0].get("datasets", []) if d.get("role") in _SET_ROLES}
     missing = [r for r in _SET_ROLES if r not in first]
     if missing:

@@ -324,6 +324,18 @@ def test_sections_a_model_kind_never_reads_are_named():
     assert unread_sections(load_config("paper")) == ["cyclegan", "munit"]
 
 
+def test_every_section_a_model_kind_reads_is_a_config_section():
+    # MODEL_SECTIONS is what validate and unread_sections walk; a section a kind owns but the walk
+    # misses would let a changed value in it pass silently
+    from dataclasses import fields
+
+    from train.config import KIND_SECTIONS, MODEL_SECTIONS, Config
+
+    owned = {s for secs in KIND_SECTIONS.values() for s in secs}
+    assert owned == set(MODEL_SECTIONS)
+    assert set(MODEL_SECTIONS) <= {f.name for f in fields(Config)}
+
+
 def test_every_value_of_the_paper_preset_says_where_it_comes_from():
     from train.config import PRESETS_DIR
 

@@ -179,6 +179,8 @@ class Config:
 
 # The sections each model kind reads; a changed value anywhere else would be ignored, so it is refused.
 KIND_SECTIONS = {"iae": ("model", "loss"), "cyclegan": ("cyclegan",), "munit": ("munit",), "oracle": ("model",)}
+# Every section some kind owns, in the order messages name them (model.kind itself is read by all)
+MODEL_SECTIONS = ("model", "loss", "cyclegan", "munit")
 
 
 class ConfigError(ValueError):
@@ -265,7 +267,7 @@ def _ignored_settings(cfg: Config) -> list[str]:
     """Keys that differ from their defaults in sections this model kind never reads."""
     defaults, used = Config(), KIND_SECTIONS[cfg.model.kind]
     out = []
-    for section in ("model", "loss", "cyclegan", "munit"):
+    for section in MODEL_SECTIONS:
         if section in used:
             continue
         for f in fields(getattr(cfg, section)):
@@ -281,7 +283,7 @@ def unread_sections(cfg: Config) -> list[str]:
     training_options.json so that a reader of a baseline's run does not take them for its settings."""
     used = KIND_SECTIONS[cfg.model.kind]
     return [("model (all but model.kind)" if s == "model" else s)
-            for s in ("model", "loss", "cyclegan", "munit") if s not in used]
+            for s in MODEL_SECTIONS if s not in used]
 
 
 def validate(cfg: Config) -> Config:
