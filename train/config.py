@@ -179,8 +179,8 @@ class Config:
 
 # The sections each model kind reads; a changed value anywhere else would be ignored, so it is refused.
 KIND_SECTIONS = {"iae": ("model", "loss"), "cyclegan": ("cyclegan",), "munit": ("munit",), "oracle": ("model",)}
-# Every section some kind owns, in the order messages name them (model.kind itself is read by all)
-MODEL_SECTIONS = ("model", "loss", "cyclegan", "munit")
+# Every section some kind owns, in first-owned order (model.kind itself is read by all)
+MODEL_SECTIONS = tuple(dict.fromkeys(s for secs in KIND_SECTIONS.values() for s in secs))
 
 
 class ConfigError(ValueError):
