@@ -48,10 +48,8 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
     rows: dict[str, Seeded] = {}
     names = []
     for k, path in enumerate(paths):
-        f = path / "results.json" if path.is_dir() else path
         data = read_results(path)
-        folder = f.parent if f.name == "results.json" else f.with_suffix("")
-        names.append(folder.parent.name if folder.name == "report" else folder.name)  # reproduce's OUT/report
+        names.append(_seed_name(_results_file(path)))
         for entry in data.get("runs", []) + data.get("references", []):
             label = entry.get("label")
             if not label:
@@ -73,10 +71,22 @@ def _set_diff(a: dict | None, b: dict) -> list[str]:
     return [k for k in _SET_FIELDS if a is None or a.get(k) != b.get(k)]
 
 
+def _results_file(path: Path) -> Path:
+    """The results.json that `path` names: the file itself or the report folder holding it."""
+    return path / "results.json" if path.is_dir() else path
+
+
+def _seed_name(f: Path) -> str:
+    """A seed's name in the tables: its report folder (reproduce's OUT/report: OUT), or the file's
+    stem when the results file was renamed (cpu_s21.json: cpu_s21)."""
+    folder = f.parent if f.name == "results.json" else f.with_suffix("")
+    return folder.parent.name if folder.name == "report" else folder.name
+
+
 def read_results(path: Path) -> dict:
     """A report's results.json (the file, or the report folder holding it); a one-line error names
     the file when it is missing or not JSON."""
-    f = path / "results.json" if path.is_dir() else path
+    f = _results_file(path)
     try:
         return json.loads(f.read_text())
     except (OSError, json.JSONDecodeError) as exc:
