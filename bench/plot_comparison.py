@@ -72,19 +72,22 @@ def main() -> None:
     colour = any("probe/r_colour_corr" in rows[-1] for seeds in runs.values() for rows in seeds.values())
     panels = list(METRICS) + ([("probe/r_colour_corr", None, "R colour correlation"),
                                ("probe/h_colour_corr", None, "H albedo colour correlation")] if colour else [])
+    seeds = sorted({seed for name in order for seed in runs[name]})  # one line style per seed, in every model
     fig, axes = plt.subplots(1, len(panels), figsize=(5.7 * len(panels), 5.2))
     for ax, (key, const, title) in zip(axes, panels):
         for c, name in enumerate(order):
             for j, (seed, rows) in enumerate(sorted(runs[name].items())):
                 rows = [r for r in rows if key in r]  # older curves lack the colour figures
                 ax.plot([r["step"] for r in rows], [r[key] for r in rows], color=f"C{c % 10}",
-                        ls=("-", "--", ":")[j % 3] if name not in ("oracle",) else "-", lw=1.4,
+                        ls=("-", "--", ":")[seeds.index(seed) % 3], lw=1.4,
                         label=name if j == 0 else None)
         if const:
             ax.axhline(next(iter(runs[order[0]].values()))[-1][const], color="k", ls="--", lw=1, label="constant")
         ax.set_title(title)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
+    for j, seed in enumerate(seeds[:3] if len(seeds) > 1 else []):  # which line style is which seed
+        axes[0].plot([], [], color="grey", ls=("-", "--", ":")[j], lw=1.4, label=f"seed {seed}")
     axes[0].legend(fontsize=8, ncol=2)
     fig.tight_layout()
     a.out.parent.mkdir(parents=True, exist_ok=True)
