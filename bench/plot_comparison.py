@@ -16,6 +16,7 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
+LINE_STYLES = ("-", "--", ":")  # one per seed, in the order of the seeds drawn
 METRICS = (("probe/normal_deg", "probe/const_normal_deg", "normals (deg)"),
            ("probe/albedo_l1", "probe/const_albedo_l1", "albedo L1 (0-255)"),
            ("probe/reflection_l1", "probe/const_reflection_l1", "reflection L1 (0-255)"))
@@ -72,22 +73,22 @@ def main() -> None:
     colour = any("probe/r_colour_corr" in rows[-1] for seeds in runs.values() for rows in seeds.values())
     panels = list(METRICS) + ([("probe/r_colour_corr", None, "R colour correlation"),
                                ("probe/h_colour_corr", None, "H albedo colour correlation")] if colour else [])
-    seeds = sorted({seed for name in order for seed in runs[name]})  # one line style per seed, in every model
+    seeds = sorted({seed for name in order for seed in runs[name]})
     fig, axes = plt.subplots(1, len(panels), figsize=(5.7 * len(panels), 5.2))
     for ax, (key, const, title) in zip(axes, panels):
         for c, name in enumerate(order):
             for j, (seed, rows) in enumerate(sorted(runs[name].items())):
                 rows = [r for r in rows if key in r]  # older curves lack the colour figures
                 ax.plot([r["step"] for r in rows], [r[key] for r in rows], color=f"C{c % 10}",
-                        ls=("-", "--", ":")[seeds.index(seed) % 3], lw=1.4,
+                        ls=LINE_STYLES[seeds.index(seed) % len(LINE_STYLES)], lw=1.4,
                         label=name if j == 0 else None)
         if const:
             ax.axhline(next(iter(runs[order[0]].values()))[-1][const], color="k", ls="--", lw=1, label="constant")
         ax.set_title(title)
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
-    for j, seed in enumerate(seeds[:3] if len(seeds) > 1 else []):  # which line style is which seed
-        axes[0].plot([], [], color="grey", ls=("-", "--", ":")[j], lw=1.4, label=f"seed {seed}")
+    for style, seed in zip(LINE_STYLES, seeds if len(seeds) > 1 else []):  # which line style is which seed
+        axes[0].plot([], [], color="grey", ls=style, lw=1.4, label=f"seed {seed}")
     axes[0].legend(fontsize=8, ncol=2)
     fig.tight_layout()
     a.out.parent.mkdir(parents=True, exist_ok=True)
