@@ -286,8 +286,15 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--run-seed", type=int, default=None,
               help="Seed of the trainings (default: --seed): another run seed on the same data.")
 @click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Sanity settings only: a config override for the full model's runs (repeatable), to measure "
+                   "another objective on the same data, e.g. --set loss.w_shading_dec=0.")
+@click.option("--settings", default="S0,S1", show_default=True, help="Sanity settings only: which of S0, S1 to train.")
+@click.option("--seeds", "seeds", default=None, help="Sanity settings only: comma-separated training seeds "
+              "(the budget's by default).")
+@click.option("--no-oracle", is_flag=True, help="Sanity settings only: skip the supervised oracle's runs.")
 def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads,
-                  seed, run_seed, dry_run) -> None:
+                  seed, run_seed, dry_run, overrides, settings, seeds, no_oracle) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     import os
     import shutil
@@ -298,7 +305,11 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
     if budget.startswith("sanity"):
         if data is not None:
             raise click.BadParameter("the sanity settings make their own data in OUT/data", param_hint="--data")
-        return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run)
+        return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run, overrides, settings, seeds, no_oracle)
+    for flag, value in (("--set", overrides), ("--seeds", seeds), ("--no-oracle", no_oracle),
+                        ("--settings", settings != "S0,S1")):
+        if value:
+            raise click.BadParameter("applies to the sanity budgets only", param_hint=flag)
     b = BUDGETS[budget]
     overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
                                    ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
@@ -359,24 +370,44 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
 
 
 def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | None, threads: int | None, seed: int,
-                dry_run: bool) -> None:
+                dry_run: bool, overrides=(), settings: str = "S0,S1", seeds: str | None = None,
+                no_oracle: bool = False) -> None:
     import os
     from dataclasses import replace
+
+    from train.config import ConfigError, load_config
 
     from .sanity import SANITY_BUDGETS, SanityPlan, run_sanity
 
     b = SANITY_BUDGETS[budget]
     if steps is not None:
         b = replace(b, steps=steps)
+    chosen = tuple(x.strip() for x in settings.split(",") if x.strip())
+    if not chosen or set(chosen) - {"S0", "S1"} or len(set(chosen)) != len(chosen):
+        raise click.BadParameter(f"{settings!r}: expected S0, S1 or S0,S1", param_hint="--settings")
+    if seeds is not None:
+        try:
+            picked = tuple(int(x) for x in seeds.split(","))
+        except ValueError:
+            raise click.BadParameter(f"{seeds!r}: expected comma-separated integers", param_hint="--seeds") from None
+        if len(set(picked)) != len(picked):
+            raise click.BadParameter(f"{seeds!r}: a seed named twice", param_hint="--seeds")
+        b = replace(b, seeds=picked)
+    try:  # a bad key fails here, not after the data are made
+        load_config("cpu-small", list(overrides))
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc), param_hint="--set") from None
     cores = os.cpu_count() or 1
     jobs = jobs or cores
-    plan = SanityPlan(b, budget, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs))
+    plan = SanityPlan(b, budget, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs),
+                      chosen, tuple(overrides), not no_oracle)
     n_runs = len(plan.runs())
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     click.echo(f"  data      {b.n_intrinsics} intrinsics (S0: half M_s, half shaded as real), {b.n_real} PBR of the "
                f"training cars (S1 real, masked), {b.n_probe} Table-3 probe images at {b.render}")
-    click.echo(f"  training  S0 and S1: the full model on seeds {', '.join(map(str, b.seeds))} and the oracle; "
-               f"{n_runs} runs x {b.steps} steps at {b.train[0]}x{b.train[1]}, {jobs} at a time")
+    click.echo(f"  training  {' and '.join(chosen)}: the full model on seeds {', '.join(map(str, b.seeds))}"
+               + ("" if no_oracle else " and the oracle") + (f" with {' '.join(overrides)}" if overrides else "")
+               + f"; {n_runs} runs x {b.steps} steps at {b.train[0]}x{b.train[1]}, {jobs} at a time")
     click.echo(f"  output    {plan.out}")
     if not dry_run:
         run_sanity(plan)

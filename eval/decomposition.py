@@ -3,6 +3,8 @@
 Normals: angle between the normalised prediction and the truth (mean, median, % under
 11.25 / 22.5 / 30 degrees). Albedo and reflection: L1 on the 0-255 sRGB scale (the paper's
 scale) and on linear values; albedo also scale-invariantly (albedo is defined up to scale).
+Speckle (not in the paper): the high-frequency energy (mean |Laplacian| inside the object) of
+the predicted normals and albedo beside the truth's, so a hidden code in H's maps is a number.
 """
 from __future__ import annotations
 
@@ -42,6 +44,20 @@ def scale_invariant_l1(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(np.mean(np.abs(alpha * pred - gt)))
 
 
+def high_frequency(x: np.ndarray, on: np.ndarray) -> float:
+    """Mean |Laplacian| of an (H, W, C) map over the interior of the mask `on` (pixels whose 4
+    neighbours are also on, so the silhouette's edge does not count), averaged over channels."""
+    p = np.pad(x.astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")
+    lap = np.abs(p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * p[1:-1, 1:-1]).mean(-1)
+    m = np.pad(on, 1)
+    inner = on & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
+    return float(lap[inner].mean()) if inner.any() else 0.0
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+
+
 def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tuple[dict, np.ndarray]:
     on = gt["mask"][..., 0] >= 0.5
     if not on.any():
@@ -57,6 +73,11 @@ def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tupl
         "albedo_si_l1_linear": scale_invariant_l1(pred["albedo"][on], gt["albedo"][on]),
         "reflection_l1_srgb255": l1_srgb255(pred["reflection"][on], gt["reflection"][on]),
         "reflection_l1_linear": l1_linear(pred["reflection"][on], gt["reflection"][on]),
+        # speckle: normals as unit vectors, albedo in sRGB (as the eye and the L1 column see it)
+        "normal_hf": high_frequency(_unit(pred["normal"]), on),
+        "normal_hf_truth": high_frequency(_unit(gt["normal"]), on),
+        "albedo_hf": high_frequency(linear_to_srgb(pred["albedo"]), on),
+        "albedo_hf_truth": high_frequency(linear_to_srgb(gt["albedo"]), on),
     }
     return row, ang
 
@@ -106,6 +127,9 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
         "pixels": int(ang.size),
         "normal_median_deg_all_pixels": float(np.median(ang)),
         **{f"normal_under_{t:g}_pct_all_pixels": float((ang < t).mean() * 100.0) for t in THRESHOLDS},
+        # speckle as a multiple of the truth's high-frequency energy (1 = as smooth as the truth)
+        **{f"{k}_hf_ratio": float(np.mean([r[f"{k}_hf"] for r in rows]))
+           / max(float(np.mean([r[f"{k}_hf_truth"] for r in rows])), 1e-12) for k in ("normal", "albedo")},
         "data": str(Path(data).resolve()),
         "predictions": str(Path(predictions).resolve()),
     }
@@ -136,7 +160,8 @@ def format_table(summary: dict) -> str:
         f"  albedo      L1 {summary['albedo_l1_srgb255']:.2f} (0-255 sRGB), {summary['albedo_l1_linear']:.4f} (linear), "
         f"scale-invariant {summary['albedo_si_l1_linear']:.4f}",
         f"  reflection  L1 {summary['reflection_l1_srgb255']:.2f} (0-255 sRGB), {summary['reflection_l1_linear']:.4f} (linear)",
-    ])
+    ] + ([f"  speckle     high-frequency energy x the truth's: normals {summary['normal_hf_ratio']:.2f}, "
+          f"albedo {summary['albedo_hf_ratio']:.2f}"] if "normal_hf_ratio" in summary else []))
 
 
 def summary_json(path: Path) -> dict:

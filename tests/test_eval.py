@@ -157,8 +157,11 @@ def test_report_has_tables_like_the_papers(report):
 
     grid = Image.open(out / "render_grid.png")  # 3 intrinsics + 2 runs + the albedo copy, 2 rows of 128 px
     assert grid.size == (256 * 6, 18 + 2 * 128)
-    dec_grid = Image.open(out / "decomposition_grid.png")  # image, truth, 2 runs + the constant; 3 layers per image
-    assert dec_grid.size == (256 * 5, 18 + 2 * 3 * 128)
+    dec_grid = Image.open(out / "decomposition_grid.png")  # image, truth, 2 runs, the constant, the prior; 3 layers
+    assert dec_grid.size == (256 * 6, 18 + 2 * 3 * 128)
+    prior = refs["Per-pixel prior (no image)"]["dec"]
+    assert 0 < prior["normal_mean_deg"] < 90 and prior["samples"] == 3
+    assert "| Per-pixel prior (no image) |" in md and "speckle N / A" in md and "stronger of the two" in md
     results = json.loads((out / "results.json").read_text())["runs"]
     assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
     assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)

@@ -43,12 +43,14 @@ def test_network_shapes(h, w):
     assert Decomposer(8, 2, 5)(x3).shape == (2, 9, h, w)
     outs = MultiscaleDiscriminator(9, 8, 3, 2)(x9)
     assert len(outs) == 2 and outs[0].shape[:2] == (2, 1) and outs[1].shape[-1] < outs[0].shape[-1]
-    cfg = tiny_cfg(data__height=h, data__width=w, model__inputs="NA")
+    cfg = tiny_cfg(data__height=h, data__width=w, model__inputs="NA", model__shader_residual=0.25)
     model = IntrinsicAutoencoder(cfg)
     out = model.forward_all(x9.tanh(), x3.tanh())
     assert out["fake_I"].shape == (2, 3, h, w) and out["fake_M"].shape == (2, 9, h, w)
     assert out["rec_M"].shape == (2, 9, h, w) and out["rec_I"].shape == (2, 3, h, w)
-    assert model.R.model[1].in_channels == 6
+    assert model.R.net.model[1].in_channels == 6 + 3  # the selected maps and the shaded image (renderer "shader")
+    paper_r = IntrinsicAutoencoder(tiny_cfg(data__height=h, data__width=w, model__inputs="NA", model__renderer="net"))
+    assert paper_r.R.model[1].in_channels == 6
 
 
 def test_losses_against_hand_computed_values():
@@ -122,7 +124,8 @@ def test_an_ablated_cycle_lets_no_input_of_its_domain_reach_the_generators(switc
 @pytest.mark.parametrize("detach", [False, True])
 def test_cycle_detach_trains_only_the_second_network_of_each_cycle(detach):
     torch.manual_seed(0)
-    model = IntrinsicAutoencoder(tiny_cfg(loss__cycle_detach=detach))
+    # the paper's R: the shader R lit by fitted lightings has no parameter of its own in either cycle
+    model = IntrinsicAutoencoder(tiny_cfg(loss__cycle_detach=detach, model__renderer="net"))
     x9, x3 = torch.randn(2, 9, 32, 64).tanh(), torch.randn(2, 3, 32, 64).tanh()
     for loss_name, first, second in (("dec", "H.", "R."), ("ren", "R.", "H.")):
         model.zero_grad(set_to_none=True)
@@ -431,7 +434,9 @@ def test_the_supervised_oracle_learns_from_pbr_pairs_and_needs_a_pbr_set(data, t
     intr, photos = data
     pbr = tiny_intrinsics(tmp_path / "pbr", n=4, kind="pbr", seed=3)
     torch.manual_seed(0)
-    cfg = tiny_cfg(model__kind="oracle", optim__lr=1e-3, run__checkpoint_every=1000, run__grid_every=1000)
+    # the paper's R: both networks start from noise and must fall far
+    cfg = tiny_cfg(model__kind="oracle", model__renderer="net", optim__lr=1e-3, run__checkpoint_every=1000,
+                   run__grid_every=1000)
     model = build_model(cfg)
     assert model.discriminator_modules() == {} and set(model.generator_modules()) == {"R", "H"}
     fit(tmp_path / "o", cfg, str(intr), str(pbr), max_steps=40, progress=False)

@@ -41,10 +41,12 @@ def _optim_load(prefix: str, opt: torch.optim.Optimizer, tensors: dict, meta: di
 
 
 def save_checkpoint(folder: Path, step: int, model: torch.nn.Module, optimizers: dict, schedulers: dict,
-                    extra: dict | None = None, keep: int = 3) -> Path:
+                    extra: dict | None = None, keep: int = 3, ema: torch.nn.Module | None = None) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     name = f"step_{step:08d}"
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    if ema is not None:  # the moving average of the weights, beside the raw ones
+        tensors.update({f"ema.{k}": v.detach().cpu().contiguous() for k, v in ema.state_dict().items()})
     state: dict = {"step": step, "optimizers": {}, "schedulers": {}, "extra": extra or {}}
     for oname, opt in optimizers.items():
         t, meta = _optim_tensors(f"optim.{oname}", opt)
@@ -137,6 +139,20 @@ def load_weights(path: Path, model: torch.nn.Module, tensors: dict[str, torch.Te
             raise CheckpointError(f"{path}: {k} has shape {tuple(v.shape)}, the config's model needs {tuple(own[k].shape)}")
     model.load_state_dict(weights)
     return tensors
+
+
+def load_ema(path: Path, ema: torch.nn.Module) -> bool:
+    """Load the moving-average weights saved beside a checkpoint's ("ema." keys) into `ema`;
+    False when the checkpoint has none (written without them), leaving `ema` as it is."""
+    tensors = _load_tensors(path)
+    weights = {k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")}
+    if not weights:
+        return False
+    own = ema.state_dict()
+    if set(weights) != set(own) or any(v.shape != own[k].shape for k, v in weights.items()):
+        raise CheckpointError(f"{path}: its moving-average weights do not match the model config")
+    ema.load_state_dict(weights)
+    return True
 
 
 def load_checkpoint(path: Path, model: torch.nn.Module, optimizers: dict, schedulers: dict) -> dict:

@@ -45,6 +45,24 @@ class ModelConfig:
     h_downsample: int = 2
     h_blocks: int = 5
     normal_output: str = "tanh"  # "tanh" + the normal-length loss (the paper), or "normalize"
+    # Not in the paper: "net" = R is the pix2pixHD generator alone (the paper); "shader" = R is a
+    # deferred shader, lin(A) x SH(N; learned lighting) + gain x lin(F) (train.shading), plus the
+    # same generator as a residual of amplitude shader_residual (network units; 0 = shader only) on
+    # the background, so R's shading follows the normals from the first step and H learns to read
+    # normals from shading (docs/normals_from_shading.md: S0 normals 38.1 -> 26.4 / 27.8 deg, two seeds).
+    renderer: str = "shader"
+    # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
+    # agree on a hidden code (S0 normals 27 -> 36 deg, speckle x2); one on the background only gave H a
+    # cue to tell R's images from real ones (its noise against their clean background), and H then put
+    # real images into its reflection map (S1 normals 37-48 deg). The shader draws the environment
+    # behind the car from the reflection layer.
+    shader_residual: float = 0.0
+    shader_residual_on: str = "background"  # "background" (where the intrinsics have no object) or "everywhere"
+    # "per_image": R(H(I_r)) is lit by the SH lighting fitted to I_r through H's maps, and R(M_s) by one
+    # drawn from the last lighting_bank such fits, so H sees cars under the real images' lightings (a
+    # global appearance code of 30 numbers that cannot carry the intrinsics); "global": one learned lighting
+    shader_lighting: str = "per_image"
+    lighting_bank: int = 256
     # D_I (3 ch) and D_M (9 ch): multi-scale PatchGAN, 2 scales (the paper)
     d_ndf: int = 64
     d_layers: int = 3
@@ -96,6 +114,13 @@ class LossConfig:
     # did not follow the paint. 10 (measured, README "R paints cars their colour"); 1 did nothing;
     # 0 = the paper.
     w_chroma: float = 10.0
+    # Not in the paper: the shading tie (train.shading). Per image, the closed-form SH lighting that
+    # best explains the image's luminance from intrinsics; the weighted relative residual is the loss.
+    # w_shading_ren: on R(M_s) with M_s's maps (R must shade by the normals it is given);
+    # w_shading_dec: on I_r with H(I_r)'s maps on H's object mask (H's normals must explain the real
+    # image's shading). 0 = the paper.
+    w_shading_ren: float = 3.0
+    w_shading_dec: float = 3.0
 
 
 @dataclass
@@ -158,6 +183,9 @@ class RunConfig:
     grid_samples: int = 4  # fixed inputs shown in every grid
     probe_every: int = 250  # steps between probe evaluations (`fit --probe`); 0 = only at the end
     probe_samples: int = 64  # probe images evaluated (the first N of the --probe set)
+    # Not in the paper: an exponential moving average of the generators' weights (0 = none), kept
+    # beside the raw ones, probed beside them ("probe_ema/...") and used by inference and the report
+    ema_decay: float = 0.999
     amp: str = "auto"  # bf16 autocast: "auto" (on CUDA), "on", "off"
     channels_last: str = "auto"  # "auto" (on CUDA), "on", "off"
 
@@ -304,6 +332,11 @@ def validate(cfg: Config) -> Config:
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
     _choice("model.norm", m.norm, ("instance", "batch"))
+    _choice("model.renderer", m.renderer, ("net", "shader"))
+    _choice("model.shader_residual_on", m.shader_residual_on, ("background", "everywhere"))
+    _choice("model.shader_lighting", m.shader_lighting, ("per_image", "global"))
+    if not 0 <= cfg.run.ema_decay < 1:
+        raise ConfigError(f"run.ema_decay: expected a value in [0, 1), got {cfg.run.ema_decay!r}")
     _choice("cyclegan.norm", cfg.cyclegan.norm, ("instance", "batch"))
     _choice("optim.lr_policy", o.lr_policy, ("linear", "step"))
     for key in ("amp", "channels_last"):
@@ -317,7 +350,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.normal_threshold", "loss.cycle_noise",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):
@@ -369,7 +402,18 @@ def load_config(name_or_file: str, overrides: list[str] | None = None) -> Config
     return validate(cfg)
 
 
+# Settings added after runs had been trained, with the value that reproduces what such a run did
+# (its training_options.json lacks the key): an older run folder resumes and loads as it trained.
+LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywhere", "model.shader_lighting": "global",
+                 "loss.w_shading_ren": 0.0, "loss.w_shading_dec": 0.0, "run.ema_decay": 0.0}
+
+
 def config_from_dict(data: dict) -> Config:
+    """The config a run folder was trained with (its training_options.json "config")."""
     cfg = Config(name=data.get("name", "run"))
+    for key, value in LEGACY_VALUES.items():
+        section, name = key.split(".")
+        if name not in data.get(section, {}):
+            set_value(cfg, key, value)
     apply_dict(cfg, {k: v for k, v in data.items() if k != "name"})
     return validate(cfg)

@@ -23,6 +23,8 @@ def _net_params(model) -> dict[str, list[torch.nn.Parameter]]:
 
 
 def _flat_grad(loss: torch.Tensor, params: list[torch.nn.Parameter]) -> torch.Tensor:
+    if not loss.requires_grad:  # e.g. the shader R lit by fitted lightings: no parameter reaches it
+        return torch.cat([torch.zeros_like(p).flatten() for p in params])
     grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
     return torch.cat([(g if g is not None else torch.zeros_like(p)).flatten() for g, p in zip(grads, params)])
 
@@ -71,7 +73,7 @@ def diagnose_run(run_dir: Path, probe: Path, checkpoint: Path | None = None, bat
     from .probe import load_probe
 
     opts, cfg = load_run_options(run_dir)
-    cfg, model, step, path = load_run_checkpoint(run_dir, device, checkpoint)
+    cfg, model, step, path = load_run_checkpoint(run_dir, device, checkpoint, raw=True)
     gen = torch.Generator().manual_seed(seed)
     intr = IntrinsicsData(Path(opts["intrinsics"]), cfg.data.height, cfg.data.width)
     p = load_probe(Path(probe), cfg.data.height, cfg.data.width, limit=None)

@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from blender_gen.conversions import from_network, preview_srgb8
 from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, DatasetWriter, folder_is_empty, save_png
-from .checkpoint import CheckpointError, load_newest, load_weights, read_state
+from .checkpoint import CheckpointError, load_ema, load_newest, load_weights, read_state
 from .config import Config, config_from_dict
 from .data import IntrinsicsData, RealImages
 from .loop import _save_png, to_display
@@ -32,9 +32,13 @@ def load_run(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None)
     return cfg, model, step
 
 
-def load_run_checkpoint(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None
+def load_run_checkpoint(run_dir: Path, device: str = "cpu", checkpoint: Path | None = None, raw: bool = False
                         ) -> tuple[Config, torch.nn.Module, int, Path]:
-    """`load_run` and the checkpoint file the weights came from."""
+    """`load_run` and the checkpoint file the weights came from.
+
+    The generators' moving-average weights are used where the checkpoint has them (run.ema_decay;
+    they probe better and steadier than the raw ones, README "Normals from shading"), as StyleGAN
+    uses G_ema; `raw` takes the weights the optimiser was training (for gradient diagnosis)."""
     run_dir = Path(run_dir)
     _, cfg = load_run_options(run_dir)
     model = build_model(cfg)
@@ -47,6 +51,7 @@ def load_run_checkpoint(run_dir: Path, device: str = "cpu", checkpoint: Path | N
             print(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
         if state is None:
             raise CheckpointError(f"--run {run_dir}: no readable checkpoint yet (train it with `iae-train fit` first)")
+    model.weights = "moving average" if not raw and load_ema(path, model) else "raw"
     return cfg, model.to(device).eval(), int(state["step"]), path
 
 
@@ -146,7 +151,9 @@ def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: in
         "kind": "predictions", "resolution": [src_w, src_h], "count_requested": n, "source": str(Path(images).resolve()),
         "source_recipe": reals.ds.info.get("recipe") if reals.ds is not None else None, "limit": limit,
         "run": str(Path(run_dir).resolve()), "step": step, "model": cfg.model.kind, "config_name": cfg.name,
-        "layers": list(INTRINSIC_LAYERS)})
+        "weights": getattr(model, "weights", "raw"), "layers": list(INTRINSIC_LAYERS),
+        # H is fully convolutional but runs at the size it trained at; its maps are resized back
+        "network_size": [cfg.data.width, cfg.data.height]})
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         img = torch.stack([reals[(i, False)] for i in idx]).to(device)

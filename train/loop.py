@@ -5,6 +5,7 @@ global batch and gradients are averaged with one flattened all-reduce per networ
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -21,11 +22,11 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
-from .checkpoint import latest_checkpoint, load_newest, save_checkpoint
+from .checkpoint import latest_checkpoint, load_ema, load_newest, save_checkpoint
 from .config import Config, ConfigError, config_from_dict, unread_sections
 from .data import CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, infinite_loader
 from .model import build_model
-from .probe import evaluate_probe, probe_plot
+from .probe import EMA_PREFIX, evaluate_probe, pixel_prior, probe_plot
 from .run_folder import RunFolder
 
 
@@ -224,7 +225,9 @@ def make_probe(opts: dict, cfg: Config, intr: IntrinsicsData, device: str):
 
     probe = load_probe(Path(opts["probe"]), cfg.data.height, cfg.data.width, limit=cfg.run.probe_samples)
     picks = np.linspace(0, len(intr) - 1, min(200, len(intr))).round().astype(int)
-    probe.const_albedo, probe.const_reflection = training_means(torch.stack([intr[(int(i), False)] for i in picks]))
+    stacks = torch.stack([intr[(int(i), False)] for i in picks])
+    probe.const_albedo, probe.const_reflection = training_means(stacks)
+    probe.prior = pixel_prior(stacks)
     return probe.to(device)
 
 
@@ -362,6 +365,9 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     channels_last = _resolve(cfg.run.channels_last, device)
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
+    ema = make_ema(model, cfg.run.ema_decay) if dd.main else None
+    if ema is not None and resumed_from is not None:
+        load_ema(resumed_from, ema)
     amp = _resolve(cfg.run.amp, device)
     autocast = (lambda: torch.autocast(device_type=device.split(":")[0], dtype=torch.bfloat16)) if amp else nullcontext
 
@@ -397,7 +403,7 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
 
     def checkpoint(step: int) -> None:
         if dd.main:
-            save_checkpoint(ckpt_dir, step, model, optimizers, schedulers, keep=cfg.run.keep_checkpoints)
+            save_checkpoint(ckpt_dir, step, model, optimizers, schedulers, keep=cfg.run.keep_checkpoints, ema=ema)
         if dd.world > 1:
             dist.barrier()
 
@@ -418,6 +424,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
                 for sched in schedulers.values():
                     sched.step()
                 step += 1
+                if ema is not None:
+                    update_ema(ema, model, cfg.run.ema_decay, step)
                 logs = {**g_logs, **d_logs}
                 bad = [k for k, v in logs.items() if not math.isfinite(v)]
                 if bad:
@@ -430,6 +438,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
                                                                       and step % cfg.run.probe_every == 0))
                 if probing:
                     logs = {**logs, **evaluate_probe(model, probe_set)}
+                    if ema is not None:
+                        logs.update(evaluate_probe(ema, probe_set, prefix=EMA_PREFIX, references=False))
                     if progress:
                         tqdm.write(f"step {step}: probe normals {logs['probe/normal_deg']:.1f} deg (constant "
                                    f"{logs['probe/const_normal_deg']:.1f}), albedo {logs['probe/albedo_l1']:.1f}, "
@@ -452,6 +462,29 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     seconds = time.perf_counter() - t_start
     return {"step": step, "steps_run": step - start, "seconds": seconds, "last": last_logs,
             "resumed_from": str(resumed_from) if resumed_from else None}
+
+
+def make_ema(model, decay: float):
+    """A frozen copy of the model whose generators track an exponential moving average of the
+    trained ones (discriminators are copied but never used); None when `decay` is 0."""
+    if not decay or not model.generator_modules():
+        return None
+    ema = copy.deepcopy(model).eval()
+    ema.requires_grad_(False)
+    return ema
+
+
+@torch.no_grad()
+def update_ema(ema, model, decay: float, step: int) -> None:
+    """EMA of the generators' weights; the decay ramps up from 0 so early averages are not
+    dominated by the random initialisation."""
+    d = min(decay, (1 + step) / (10 + step))
+    own = ema.generator_modules()
+    for name, mod in model.generator_modules().items():
+        for pe, p in zip(own[name].parameters(), mod.parameters()):
+            pe.lerp_(p.detach(), 1 - d)
+        for be, b in zip(own[name].buffers(), mod.buffers()):
+            be.copy_(b)
 
 
 def _any_rank(flag: bool, world: int, device: str) -> bool:

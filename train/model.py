@@ -18,7 +18,8 @@ from torch import nn
 
 from .config import Config
 from .losses import chroma_loss, cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
-from .networks import Decomposer, MultiscaleDiscriminator, init_weights, make_renderer_net
+from .networks import Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
+from .shading import fit_lighting, shading_loss
 
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
 
@@ -61,7 +62,14 @@ class IntrinsicAutoencoder(nn.Module):
         super().__init__()
         m, self.loss_cfg = cfg.model, cfg.loss
         self.inputs = [c for c in "NAF" if c in m.inputs]  # canonical order
-        self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks, m.r_local_enhancers, m.norm)
+        self.shader = m.renderer == "shader"
+        if self.shader:
+            self.R = ShaderRenderer(self.inputs, m.r_ngf, m.r_downsample, m.r_blocks, m.r_local_enhancers, m.norm,
+                                    m.shader_residual, m.shader_residual_on,
+                                    m.lighting_bank if m.shader_lighting == "per_image" else 0)
+        else:
+            self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks,
+                                       m.r_local_enhancers, m.norm)
         self.H = Decomposer(m.h_ngf, m.h_downsample, m.h_blocks, m.norm, m.normal_output)
         self.D_I = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.D_M = MultiscaleDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales, m.norm)
@@ -81,7 +89,7 @@ class IntrinsicAutoencoder(nn.Module):
         return torch.cat([m[:, CHANNELS[c]] for c in self.inputs], dim=1)
 
     def render(self, m: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        return self.R(self.select(m))
+        return self.R(m) if self.shader else self.R(self.select(m))
 
     def decompose(self, img: torch.Tensor) -> torch.Tensor:
         return self.H(img)
@@ -92,13 +100,34 @@ class IntrinsicAutoencoder(nn.Module):
         train on (for pictures only: H(I_r) shows what an ablated H makes of real images)."""
         lc = self.loss_cfg
         out = {"M_s": m_s, "I_r": i_r}
+        per_image = self.shader and self.R.bank is not None
         if lc.rendering_cycle or everything:
-            out["fake_I"] = self.render(m_s)  # R(M_s)
+            # R(M_s), under a real image's lighting when the bank has one (training only: pictures
+            # and inference use the bank's mean)
+            light = self.R.draw(len(m_s)) if per_image and self.training else None
+            out["fake_I"] = self.R(m_s, light) if self.shader else self.render(m_s)
             out["rec_M"] = self.H(self._into_cycle(out["fake_I"]))  # H(R(M_s))
         if lc.decomposition_cycle or everything:
             out["fake_M"] = self.H(i_r)  # H(I_r)
-            out["rec_I"] = self.render(self._into_cycle(out["fake_M"]))  # R(H(I_r))
+            light, fitted = self.real_lighting(i_r, out["fake_M"]) if per_image else (None, None)
+            rec_in = self._into_cycle(out["fake_M"])
+            out["rec_I"] = self.R(rec_in, light) if self.shader else self.render(rec_in)  # R(H(I_r))
+            if light is not None and self.training:
+                self.R.push(light[fitted])
         return out
+
+    @torch.no_grad()
+    def real_lighting(self, i_r: torch.Tensor, fake_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(n, 3, 10) SH lighting and reflection gain that explain each real image through H's maps, on
+        H's object mask, and (n,) whether each was fitted: an image where H finds (almost) no object
+        gets the default lighting instead."""
+        mask = object_mask(fake_m)
+        light, gain = fit_lighting(i_r, fake_m[:, 0:3], fake_m[:, 3:6], fake_m[:, 6:9], mask)
+        fitted = torch.cat([light, gain.unsqueeze(-1)], dim=-1).clamp(-10, 10)
+        d_light, d_gain = self.R.default_lighting()
+        default = torch.cat([d_light, d_gain.unsqueeze(-1)], dim=-1).expand_as(fitted)
+        ok = mask.flatten(1).sum(1) >= 16
+        return torch.where(ok.view(-1, 1, 1), fitted, default.to(fitted.dtype)), ok
 
     def _into_cycle(self, x: torch.Tensor) -> torch.Tensor:
         """A first network's output on its way into the second: `loss.cycle_detach` cuts its
@@ -141,6 +170,14 @@ class IntrinsicAutoencoder(nn.Module):
         if lc.w_chroma and "fake_I" in out and "A" in self.inputs:
             a = out["M_s"][:, CHANNELS["A"]]
             terms["G/chroma"] = (lc.w_chroma, chroma_loss(out["fake_I"], a, object_mask(out["M_s"])))
+        if lc.w_shading_ren and "fake_I" in out:  # R shades by the normals it is given
+            m = out["M_s"]
+            terms["G/shading_ren"] = (lc.w_shading_ren, shading_loss(out["fake_I"], m[:, 0:3], m[:, 3:6], m[:, 6:9],
+                                                                     object_mask(m)))
+        if lc.w_shading_dec and "fake_M" in out:  # H's normals explain the real image's shading
+            h = out["fake_M"]
+            terms["G/shading_dec"] = (lc.w_shading_dec, shading_loss(out["I_r"], h[:, 0:3], h[:, 3:6], h[:, 6:9],
+                                                                     object_mask(h.detach())))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))

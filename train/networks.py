@@ -169,3 +169,87 @@ class MultiscaleDiscriminator(nn.Module):
                 x = F.avg_pool2d(x, 3, stride=2, padding=1, count_include_pad=False)
             out.append(net(x))
         return out
+
+
+class ShaderRenderer(nn.Module):
+    """R as a deferred shader (not in the paper): linear RGB = lin(A) x SH(N; lighting) + gain x lin(F),
+    9 SH coefficients and a gain per colour channel, then sRGB. R's image follows the normals from the
+    first step, so the rendering cycle shows H images whose shading comes from the normals.
+
+    Lighting: given per sample (fitted to a real image, `train.shading.fit_lighting`), else the mean
+    of the bank of recent fits, else a learned global one. `residual` > 0 adds a generator's output
+    of that amplitude for what the shading model lacks, on the background only by default; both
+    placements measured worse (docs/normals_from_shading.md): on the car R and H agreed on a hidden
+    code again, on the background its noise told H which images were R's.
+
+    Takes the full 9-channel stack; a map outside `inputs` (an ablation) is replaced by what carries
+    no information: a camera-facing normal, mid-grey albedo, no reflection."""
+
+    def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
+                 residual: float, residual_on: str = "background", bank: int = 0):
+        super().__init__()
+        from .shading import _C0, _C1
+
+        self.inputs = inputs
+        self.residual = residual
+        self.residual_on = residual_on
+        # lightings fitted to real images (9 SH coefficients and a reflection gain per colour channel),
+        # most recent `bank` of them: drawn for R(M_s), their mean used where no lighting is given
+        for name, value in (("bank", torch.zeros(bank, 3, 10)), ("bank_filled", torch.zeros((), dtype=torch.long)),
+                            ("bank_pos", torch.zeros((), dtype=torch.long))):
+            self.register_buffer(name, value if bank else None)  # None: not part of the weights
+        light = torch.zeros(3, 9)
+        light[:, 0] = 0.55 / _C0  # ambient
+        light[:, 2] = 0.45 / _C1  # a light from the camera's side
+        self.light = nn.Parameter(light)
+        self.gain = nn.Parameter(torch.full((3,), 0.5))
+        self.net = make_renderer_net(3 * len(inputs) + 3, ngf, n_down, n_blocks, local, norm) if residual > 0 else None
+
+    @torch.no_grad()
+    def push(self, lighting: torch.Tensor) -> None:
+        """Add (n, 3, 10) fitted lightings to the bank, oldest out first."""
+        size = 0 if self.bank is None else len(self.bank)
+        for row in lighting.detach()[-size:] if size else []:
+            self.bank[self.bank_pos] = row.to(self.bank.dtype)
+            self.bank_pos.fill_((int(self.bank_pos) + 1) % size)
+            self.bank_filled.fill_(min(size, int(self.bank_filled) + 1))
+
+    def draw(self, n: int) -> torch.Tensor | None:
+        """(n, 3, 10) lightings drawn from the bank with the global RNG; None while it is empty."""
+        filled = 0 if self.bank is None else int(self.bank_filled)
+        if filled == 0:
+            return None
+        return self.bank[torch.randint(filled, (n,)).to(self.bank.device)]
+
+    def default_lighting(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(3, 9) lighting and (3,) gain for a render without a given lighting: the bank's mean where
+        it has entries (the typical real lighting), else the learned global one."""
+        filled = 0 if self.bank is None else int(self.bank_filled)
+        if filled:
+            mean = self.bank[:filled].mean(0)
+            return mean[:, :9], mean[:, 9]
+        return self.light, self.gain
+
+    def forward(self, m: torch.Tensor, lighting: torch.Tensor | None = None) -> torch.Tensor:
+        """`lighting`: (n, 3, 10) per-sample SH lighting and reflection gain (`fit_lighting`), or None."""
+        from .sanity import srgb_encode
+        from .shading import render_sh
+
+        n, a, f = m[:, 0:3], m[:, 3:6], m[:, 6:9]
+        if "N" not in self.inputs:
+            n = torch.zeros_like(n)
+            n[:, 2] = 1.0
+        if "A" not in self.inputs:
+            a = torch.zeros_like(a)
+        if "F" not in self.inputs:
+            f = torch.full_like(f, -1.0)
+        light, gain = (lighting[..., :9], lighting[..., 9]) if lighting is not None else self.default_lighting()
+        base = srgb_encode(render_sh(n, a, f, light, gain)) * 2 - 1
+        if self.net is None:
+            return base
+        chans = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
+        sel = torch.cat([m[:, chans[c]] for c in self.inputs] + [base.to(m.dtype)], dim=1)
+        res = self.residual * self.net(sel)
+        if self.residual_on == "background":  # on the car the image is the shading alone: no room for a code
+            res = res * (m[:, 0:3].float().norm(dim=1, keepdim=True) <= 0.5).to(res.dtype)
+        return (base + res).clamp(-1, 1)

@@ -29,6 +29,7 @@ from .losses import object_mask
 from .sanity import srgb_decode, srgb_encode
 
 PROBE_PREFIX = "probe/"
+EMA_PREFIX = "probe_ema/"  # the same figures of the moving-average weights
 
 
 @dataclass
@@ -41,6 +42,9 @@ class ProbeSet:
     # constant predictor's albedo and reflection (network space, 3 values each): the training means
     const_albedo: torch.Tensor | None = None
     const_reflection: torch.Tensor | None = None
+    # the per-pixel prior (9, h, w): the training intrinsics' mean at each pixel, which knows where
+    # in the frame a car tends to be and which way its surfaces face there, and uses no image
+    prior: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = len(self.images)
@@ -49,7 +53,7 @@ class ProbeSet:
 
     def to(self, device: str | torch.device) -> "ProbeSet":
         mv = {k: (getattr(self, k).to(device) if getattr(self, k) is not None else None)
-              for k in ("images", "maps", "masks", "const_albedo", "const_reflection")}
+              for k in ("images", "maps", "masks", "const_albedo", "const_reflection", "prior")}
         return ProbeSet(**mv)
 
 
@@ -85,6 +89,51 @@ def training_means(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return out[0], out[1]
 
 
+def pixel_prior(maps: torch.Tensor) -> torch.Tensor:
+    """(9, h, w) per-pixel prior of (n, 9, h, w) network-space training stacks: at each pixel the mean
+    normal direction and the mean linear albedo and reflection (network space), over the samples
+    with an object there; the camera-facing normal and the global means where none has one."""
+    on = object_mask(maps)  # (n, 1, h, w)
+    count = on.sum(0)  # (1, h, w)
+    normal = F.normalize((maps[:, 0:3] * on).sum(0), dim=0, eps=1e-6)
+    normal = torch.where(count > 0, normal, torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).to(maps))
+    out = [normal]
+    for sl, glob in zip((slice(3, 6), slice(6, 9)), training_means(maps)):
+        lin = (srgb_decode((maps[:, sl] + 1) * 0.5) * on).sum(0) / count.clamp_min(1)
+        out.append(torch.where(count > 0, srgb_encode(lin) * 2 - 1, glob.view(3, 1, 1)))
+    return torch.cat(out)
+
+
+LAPLACE = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+def high_frequency(x: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+    """(n,) mean |Laplacian| of (n, c, h, w) maps over the interior of the mask `on` (n, h, w)
+    (pixels whose 4 neighbours are also on, so the silhouette's edge does not count), averaged over
+    channels: the speckle figure. Piecewise-smooth maps score low, per-pixel noise high."""
+    c = x.shape[1]
+    k = LAPLACE.to(x).view(1, 1, 3, 3).repeat(c, 1, 1, 1)
+    lap = F.conv2d(F.pad(x.float(), (1, 1, 1, 1), mode="replicate"), k, groups=c).abs().mean(1)
+    m = F.pad(on.bool(), (1, 1, 1, 1))
+    inner = on.bool() & m[:, :-2, 1:-1] & m[:, 2:, 1:-1] & m[:, 1:-1, :-2] & m[:, 1:-1, 2:]
+    return (lap * inner).sum(dim=(1, 2)) / inner.sum(dim=(1, 2)).clamp_min(1)
+
+
+def speckle_scores(pred: torch.Tensor, probe: "ProbeSet", prefix: str = "") -> dict[str, float]:
+    """High-frequency energy of predicted normals (unit length) and albedo on the car, over the
+    ground truth's: 1 = as smooth as the truth; a hidden code shows as several times more."""
+    on = probe.masks[:, 0] >= 0.5
+    out = {}
+    for name, sl in (("normal", slice(0, 3)), ("albedo", slice(3, 6))):
+        p, g = pred[:, sl], probe.maps[:, sl]
+        if name == "normal":
+            p, g = F.normalize(p, dim=1, eps=1e-6), F.normalize(g, dim=1, eps=1e-6)
+        hp, hg = float(high_frequency(p, on).mean()), float(high_frequency(g, on).mean())
+        out[f"{prefix}{name}_hf"] = hp
+        out[f"{prefix}{name}_hf_ratio"] = hp / hg if hg > 0 else float("nan")
+    return out
+
+
 def _angles(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     cos = (F.normalize(pred, dim=1, eps=1e-8) * F.normalize(gt, dim=1, eps=1e-8)).sum(1)
     return torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
@@ -116,8 +165,10 @@ def decomposition_scores(pred: torch.Tensor, probe: ProbeSet, prefix: str = "") 
 
 
 @torch.no_grad()
-def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
-    """`probe/...` figures of a model of any kind: H on the probe images, R on their intrinsics."""
+def evaluate_probe(model, probe: ProbeSet, batch: int = 16, prefix: str = PROBE_PREFIX,
+                   references: bool = True) -> dict[str, float]:
+    """`probe/...` figures of a model of any kind: H on the probe images, R on their intrinsics;
+    `references` adds the constant predictor's and the per-pixel prior's figures."""
     was_training = model.training
     model.eval()
     try:
@@ -131,9 +182,27 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
         model.train(was_training)
     pred, ren = torch.cat(preds), torch.cat(renders)
     on = probe.masks[:, 0] >= 0.5
-    out = {f"{PROBE_PREFIX}{k}": v for k, v in decomposition_scores(pred, probe).items()}
+    out = {f"{prefix}{k}": v for k, v in decomposition_scores(pred, probe).items()}
     for c, axis in enumerate("xyz"):
-        out[f"{PROBE_PREFIX}normal_corr_{axis}"] = _corr(pred[:, c][on], probe.maps[:, c][on])
+        out[f"{prefix}normal_corr_{axis}"] = _corr(pred[:, c][on], probe.maps[:, c][on])
+    out.update({f"{prefix}{k}": v for k, v in speckle_scores(pred, probe).items()})
+    if references:
+        out.update(reference_scores(probe, prefix))
+    # R: error against the true images on object pixels, and input sensitivity
+    err = (ren - probe.images).abs().mean(1) * 127.5
+    out[f"{prefix}render_l1"] = float(_per_sample_mean(err, on).mean())
+    out[f"{prefix}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
+    out[f"{prefix}r_colour_corr"] = colour_correlation(ren, probe.images, on)
+    # H: does its albedo follow each car's paint (1), or give every car one colour (0)?
+    out[f"{prefix}h_colour_corr"] = colour_correlation(pred[:, 3:6], probe.maps[:, 3:6], on)
+    return out
+
+
+@torch.no_grad()
+def reference_scores(probe: ProbeSet, prefix: str = PROBE_PREFIX) -> dict[str, float]:
+    """The rows that use no image, on the probe's pixels: the constant predictor ("const_") and,
+    when the probe has one, the per-pixel prior of the training intrinsics ("prior_")."""
+    out: dict[str, float] = {}
     # the constant predictor on the same pixels, for reference in every curve
     const = torch.zeros_like(probe.maps)
     const[:, 2] = 1.0
@@ -142,14 +211,10 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16) -> dict[str, float]:
         const[:, 6:9] = probe.const_reflection.view(1, 3, 1, 1)
     for k, v in decomposition_scores(const, probe).items():
         if k == "normal_deg" or probe.const_albedo is not None:
-            out[f"{PROBE_PREFIX}const_{k}"] = v
-    # R: error against the true images on object pixels, and input sensitivity
-    err = (ren - probe.images).abs().mean(1) * 127.5
-    out[f"{PROBE_PREFIX}render_l1"] = float(_per_sample_mean(err, on).mean())
-    out[f"{PROBE_PREFIX}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
-    out[f"{PROBE_PREFIX}r_colour_corr"] = colour_correlation(ren, probe.images, on)
-    # H: does its albedo follow each car's paint (1), or give every car one colour (0)?
-    out[f"{PROBE_PREFIX}h_colour_corr"] = colour_correlation(pred[:, 3:6], probe.maps[:, 3:6], on)
+            out[f"{prefix}const_{k}"] = v
+    if probe.prior is not None:
+        prior = probe.prior.unsqueeze(0).expand(len(probe.maps), -1, -1, -1)
+        out.update({f"{prefix}prior_{k}": v for k, v in decomposition_scores(prior, probe).items()})
     return out
 
 

@@ -1,0 +1,278 @@
+"""Normals from shading: the SH shading fit, the shader renderer, the honest bars (per-pixel prior,
+speckle figure) and the moving average of the weights."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from train.config import ConfigError, load_config
+from train.model import build_model
+from train.networks import ShaderRenderer
+from train.probe import ProbeSet, evaluate_probe, high_frequency, pixel_prior, speckle_scores, training_means
+from train.sanity import shade_network
+from train.shading import fit_shading, render_sh, sh_basis, shading_loss
+
+from .train_helpers import TINY, tiny_intrinsics, tiny_overrides
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _blobs(n: int = 3, h: int = 32, w: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, 9, h, w) network-space stacks of ellipsoids with smooth normals and flat paint, and masks."""
+    g = torch.Generator().manual_seed(seed)
+    ys, xs = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-2, 2, w), indexing="ij")
+    stacks, masks = [], []
+    for _ in range(n):
+        sx, sy = 1.2 + 0.5 * torch.rand(1, generator=g), 0.7 + 0.2 * torch.rand(1, generator=g)
+        u, v = xs / sx, ys / sy
+        on = (u ** 2 + v ** 2) < 0.97
+        z = (1 - u ** 2 - v ** 2).clamp_min(0).sqrt()
+        normal = F.normalize(torch.stack([u, -v, z]), dim=0) * on
+        paint = (torch.rand(3, 1, 1, generator=g) * 1.6 - 0.8).expand(3, h, w)
+        albedo = torch.where(on, paint, torch.full_like(paint, -1.0))
+        refl = torch.where(on, torch.full((3, h, w), -0.6), torch.full((3, h, w), -1.0))
+        stacks.append(torch.cat([normal, albedo, refl]))
+        masks.append(on[None].float())
+    return torch.stack(stacks), torch.stack(masks)
+
+
+def test_sh_basis_spans_the_clamped_cosine_of_one_light():
+    n = F.normalize(torch.randn(1, 3, 40, 40), dim=1)
+    basis = sh_basis(n).flatten(2)[0].T  # (p, 9)
+    light = torch.tensor([0.3, 0.6, 0.7]) / torch.tensor([0.3, 0.6, 0.7]).norm()
+    target = (n[0].flatten(1).T @ light).clamp_min(0)
+    coef = torch.linalg.lstsq(basis, target[:, None]).solution
+    # second-order SH reproduce a clamped cosine to within a few percent of its range (Ramamoorthi and Hanrahan)
+    assert (basis @ coef - target[:, None]).abs().mean() < 0.05
+
+
+def test_shading_fit_explains_an_exactly_shaded_image_and_not_noise():
+    stacks, masks = _blobs()
+    image = shade_network(stacks)  # the S0 formula: albedo x (ambient + one light) + reflection
+    res, coeffs = fit_shading(image, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], masks)
+    assert coeffs.shape == (3, 10) and res.max() < 0.05
+    noise = torch.rand(image.shape, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    res_noise, _ = fit_shading(noise, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], masks)
+    assert res_noise.min() > 0.3
+    # flat normals cannot explain the shading; a rotation of all normals can (the lighting turns
+    # with them: the one ambiguity a per-image lighting fit leaves)
+    flat = torch.zeros_like(stacks[:, 0:3])
+    flat[:, 2] = 1
+    res_flat, _ = fit_shading(image, flat, stacks[:, 3:6], stacks[:, 6:9], masks)
+    assert (res_flat > 3 * res).all()
+    turned = stacks[:, 0:3] * torch.tensor([-1.0, -1.0, 1.0]).view(1, 3, 1, 1)
+    assert torch.allclose(fit_shading(image, turned, stacks[:, 3:6], stacks[:, 6:9], masks)[0], res, atol=1e-3)
+
+
+def test_shading_loss_moves_normals_and_ignores_images_without_an_object():
+    stacks, masks = _blobs(2)
+    image = shade_network(stacks)
+    normals = stacks[:, 0:3].clone().requires_grad_(True)
+    loss = shading_loss(image, normals + 0.3 * torch.randn_like(normals), stacks[:, 3:6], stacks[:, 6:9], masks)
+    loss.backward()
+    assert loss > 0 and normals.grad.abs().sum() > 0
+    empty = shading_loss(image, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], torch.zeros_like(masks))
+    assert empty.item() == 0.0
+
+
+def test_the_shader_renderer_shades_by_its_normals_and_replaces_ablated_maps():
+    stacks, masks = _blobs(2)
+    r = ShaderRenderer(list("NAF"), 8, 2, 1, 0, "instance", residual=0.0)
+    out = r(stacks)
+    assert out.shape == (2, 3, 32, 64) and out.min() >= -1 and out.max() <= 1
+    # without a residual it is exactly the SH formula, so another normal map gives another image
+    from train.sanity import srgb_encode
+
+    ref = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], r.light, r.gain)) * 2 - 1
+    assert torch.allclose(out, ref, atol=1e-6)
+    turned = stacks.clone()
+    turned[:, 0:3] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1) * masks
+    assert (r(turned) - out).abs()[masks.expand(-1, 3, -1, -1) > 0].mean() > 0.01
+    # w/o N: the normals no longer reach the image
+    r_no_n = ShaderRenderer(list("AF"), 8, 2, 1, 0, "instance", residual=0.0)
+    assert torch.allclose(r_no_n(turned), r_no_n(stacks))
+    # the residual generator sees the selected maps and the shaded image
+    r_res = ShaderRenderer(list("NA"), 8, 2, 1, 0, "instance", residual=0.25)
+    assert r_res.net.model[1].in_channels == 9
+    assert (r_res(stacks) - ref).abs().max() <= 0.25 + 1e-6 or r_res.light is not r.light
+
+
+def test_shading_terms_are_logged_and_the_shader_is_chosen_by_config():
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "loss.w_shading_ren=3",
+                                                        "loss.w_shading_dec=1"])
+    model = build_model(cfg)
+    stacks, _ = _blobs(2)
+    out = model.forward_all(stacks, shade_network(stacks))
+    terms = model.loss_terms(out)
+    assert terms["G/shading_ren"][0] == 3 and terms["G/shading_dec"][0] == 1
+    assert all(torch.isfinite(v) for _, v in terms.values())
+    assert isinstance(model.R, ShaderRenderer)
+    # the paper's preset keeps the paper's R and no shading terms
+    paper = load_config("paper")
+    assert (paper.model.renderer, paper.loss.w_shading_ren, paper.loss.w_shading_dec) == ("net", 0, 0)
+    with pytest.raises(ConfigError, match="model.renderer"):
+        load_config("cpu-small", ["model.renderer=raytracer"])
+    with pytest.raises(ConfigError, match="run.ema_decay"):
+        load_config("cpu-small", ["run.ema_decay=1.5"])
+
+
+def test_the_per_pixel_prior_knows_the_frame_and_beats_the_constant_on_its_own_data():
+    stacks, masks = _blobs(6, seed=3)
+    prior = pixel_prior(stacks)
+    assert prior.shape == (9, 32, 64)
+    # where no sample has an object: the camera-facing normal
+    assert torch.allclose(prior[0:3, 0, 0], torch.tensor([0.0, 0.0, 1.0]))
+    # the left side of a car faces left: the prior's normal points left there
+    assert prior[0, 16, 12] < -0.3
+    p = ProbeSet(shade_network(stacks), stacks, masks)
+    p.const_albedo, p.const_reflection = training_means(stacks)
+    p.prior = prior
+    model = build_model(load_config("cpu-small", tiny_overrides()))
+    figs = evaluate_probe(model, p)
+    assert figs["probe/prior_normal_deg"] < figs["probe/const_normal_deg"] - 5
+    for key in ("prior_albedo_l1", "prior_reflection_l1", "normal_hf_ratio", "albedo_hf"):
+        assert np.isfinite(figs[f"probe/{key}"]), key
+
+
+def test_the_speckle_figure_is_one_for_the_truth_and_large_for_noise():
+    stacks, masks = _blobs(3)
+    p = ProbeSet(shade_network(stacks), stacks, masks)
+    truth = speckle_scores(stacks, p)
+    assert truth["normal_hf_ratio"] == pytest.approx(1.0)
+    assert np.isnan(truth["albedo_hf_ratio"])  # flat paint has no high frequencies to compare with
+    noisy = stacks + 0.2 * torch.randn(stacks.shape, generator=torch.Generator().manual_seed(0))
+    assert speckle_scores(noisy, p)["normal_hf_ratio"] > 5
+    # the silhouette's edge does not count: a flat map cut by the mask scores 0
+    flat = torch.ones(1, 3, 32, 64)
+    assert high_frequency(flat, masks[:1, 0] > 0).item() == 0.0
+
+
+def test_report_speckle_and_prior_agree_with_the_training_figures(tmp_path):
+    from eval.decomposition import high_frequency as hf_np
+    from eval.reference_rows import pixel_prior as prior_np
+
+    stacks, masks = _blobs(2)
+    n = stacks[0, 0:3].permute(1, 2, 0).numpy()
+    on = masks[0, 0].numpy() > 0.5
+    assert hf_np(n, on) == pytest.approx(high_frequency(stacks[:1, 0:3], masks[:1, 0] > 0.5).item(), rel=1e-5)
+    intr = tiny_intrinsics(tmp_path / "intr", n=5, h=32, w=64)
+    prior = prior_np(intr, (32, 16))
+    assert prior["normal"].shape == (16, 32, 3)
+    lengths = np.linalg.norm(prior["normal"], axis=-1)
+    assert np.allclose(lengths, 1, atol=1e-4)
+
+
+def _fit(args, cwd=ROOT):
+    proc = subprocess.run([sys.executable, "-m", "train.cli", *args], cwd=cwd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc
+
+
+def test_moving_average_is_probed_saved_and_resumed_exactly(tmp_path):
+    intr = tiny_intrinsics(tmp_path / "intr", n=4)
+    pbr = tiny_intrinsics(tmp_path / "pbr", n=4, seed=5, kind="pbr")
+    common = ["fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(pbr), "--probe", str(pbr),
+              "--quiet", *TINY, "--set", "run.probe_every=3", "--set", "model.renderer=shader",
+              "--set", "loss.w_shading_ren=1", "--set", "loss.w_shading_dec=1"]
+    _fit([*common, "--run-dir", str(tmp_path / "whole"), "--max-steps", "6"])
+    _fit([*common, "--run-dir", str(tmp_path / "parts"), "--max-steps", "3"])
+    _fit(["fit", "--run-dir", str(tmp_path / "parts"), "--max-steps", "6", "--quiet"])
+    rows = {}
+    for name in ("whole", "parts"):
+        rows[name] = [json.loads(line) for line in (tmp_path / name / "stats.jsonl").read_text().splitlines()]
+    last = rows["whole"][-1]
+    assert "probe_ema/normal_deg" in last and "probe/prior_normal_deg" in last
+    assert last["probe_ema/normal_deg"] != last["probe/normal_deg"]  # another set of weights
+    for key, value in last.items():
+        assert rows["parts"][-1][key] == pytest.approx(value, rel=1e-5, abs=1e-7, nan_ok=True), key
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(tmp_path / "whole" / "checkpoints" / "step_00000006.safetensors"))
+    assert any(k.startswith("ema.R.") for k in tensors) and any(k.startswith("ema.H.") for k in tensors)
+
+
+def test_lighting_fitted_to_an_image_renders_it_and_fills_the_bank():
+    from train.sanity import srgb_encode
+    from train.shading import fit_lighting
+
+    stacks, masks = _blobs(3)
+    light = torch.zeros(3, 9)
+    light[:, 0], light[:, 3] = 2.5, 0.8  # ambient and a light from the side
+    image = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], light, torch.full((3,), 0.4))) * 2 - 1
+    l_fit, g_fit = fit_lighting(image, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], masks)
+    again = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], l_fit, g_fit)) * 2 - 1
+    on = masks.expand(-1, 3, -1, -1) > 0
+    assert (again - image).abs()[on].mean() < 0.02
+    # the model: R(H(I_r)) is lit by the fit, R(M_s) by a drawn real lighting, the bank keeps the last ones
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.lighting_bank=4"])
+    model = build_model(cfg).train()
+    r = model.R
+    assert int(r.bank_filled) == 0 and r.draw(2) is None
+    fake = torch.cat([stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9]], 1)
+    fitted, ok = model.real_lighting(image, fake)
+    assert ok.all() and torch.allclose(fitted[..., :9], l_fit.clamp(-10, 10), atol=1e-4)
+    for _ in range(2):
+        model.forward_all(stacks, image)
+    assert int(r.bank_filled) == 4 and int(r.bank_pos) == 2  # 6 pushed into 4 places, oldest out first
+    assert r.draw(5).shape == (5, 3, 10)
+    mean_light, mean_gain = r.default_lighting()
+    assert torch.allclose(mean_light, r.bank.mean(0)[:, :9])
+    # an image where H sees no object keeps the default lighting and is not banked
+    empty = fake.clone()
+    empty[:, 0:3] = 0
+    _, ok = model.real_lighting(image, empty)
+    assert not ok.any()
+
+
+def test_a_run_trained_before_these_settings_loads_as_it_trained():
+    from train.config import Config, config_from_dict
+
+    old = Config().to_dict()
+    for section, name in (("model", "renderer"), ("model", "shader_residual_on"), ("model", "shader_lighting"),
+                          ("loss", "w_shading_ren"), ("loss", "w_shading_dec"), ("run", "ema_decay")):
+        del old[section][name]
+    cfg = config_from_dict(old)
+    assert (cfg.model.renderer, cfg.loss.w_shading_ren, cfg.loss.w_shading_dec, cfg.run.ema_decay) == ("net", 0, 0, 0)
+    # a run that names them keeps its values
+    new = config_from_dict(Config().to_dict())
+    assert new.model.renderer == Config().model.renderer and new.run.ema_decay == Config().run.ema_decay
+
+
+def test_the_shader_learns_the_lighting_of_shaded_images_by_gradient():
+    stacks, masks = _blobs(4, seed=7)
+    target = shade_network(stacks)  # S0's light: ambient 0.3 and a light from above-right
+    r = ShaderRenderer(list("NAF"), 8, 2, 1, 0, "instance", residual=0.0)
+    opt = torch.optim.Adam(r.parameters(), lr=0.05)
+    on = masks.expand(-1, 3, -1, -1) > 0
+
+    def err() -> torch.Tensor:
+        return (r(stacks) - target).abs()[on].mean()
+
+    before = err().item()
+    for _ in range(150):
+        opt.zero_grad()
+        loss = err()
+        loss.backward()
+        opt.step()
+    assert err().item() < 0.3 * before
+
+
+def test_gap_closed_starts_from_the_stronger_bar_per_column():
+    from eval.report import PRIOR, _gap_closed
+
+    def dec(n, a, f):
+        return {"normal_mean_deg": n, "albedo_l1_srgb255": a, "reflection_l1_srgb255": f}
+
+    entries = [{"label": "Constant predictor", "dec": dec(40, 70, 50)}, {"label": PRIOR, "dec": dec(34, 72, 40)},
+               {"label": "Supervised oracle (paired PBR)", "dec": dec(18, 22, 24)}]
+    # normals from the prior (34), albedo from the constant (70), reflection from the prior (40)
+    assert _gap_closed(dec(26, 46, 32), entries) == "0.50 / 0.50 / 0.50"
+    worse_oracle = entries[:2] + [{"label": "Supervised oracle (paired PBR)", "dec": dec(60, 22, 24)}]
+    assert _gap_closed(dec(26, 46, 32), worse_oracle).startswith("- / ")
