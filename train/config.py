@@ -49,7 +49,7 @@ class ModelConfig:
     # deferred shader, lin(A) x SH(N; learned lighting) + gain x lin(F) (train.shading), plus the
     # same generator as a residual of amplitude shader_residual (network units; 0 = shader only) on
     # the background, so R's shading follows the normals from the first step and H learns to read
-    # normals from shading (docs/normals_from_shading.md: S0 normals 38.1 -> 26.4 / 27.8 deg, two seeds).
+    # normals from shading (docs/normals_from_shading.md: S0 normals 38.1 -> 26.4 / 27.8 / 30.1 deg, three seeds).
     renderer: str = "shader"
     # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
     # agree on a hidden code (S0 normals 27 -> 36 deg, speckle x2); one on the background only gave H a
