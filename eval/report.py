@@ -363,7 +363,7 @@ TABLE3_NOTE = ("Normals: angle after normalising predictions; albedo and reflect
                "reflection); 'gap closed' is measured from the stronger of the two on each column to the supervised "
                "oracle (0 = no better than not looking at the image). Speckle: the high-frequency energy (mean "
                "|Laplacian| inside the car) of the predicted normals and albedo over the ground truth's (1 = as "
-               "smooth as the truth). Each run's H decomposes the images at its training size (moving-average "
+               "smooth as the truth), at the set's resolution: H's maps, resized up to it, are smoothed by the resize, so the training probe's figure (at the size H saw) is the one to compare runs by. Each run's H decomposes the images at its training size (moving-average "
                "weights where the run has them); its maps are resized bilinearly to the set's resolution.")
 GAP_METRICS = ("normal_mean_deg", "albedo_l1_srgb255", "reflection_l1_srgb255")
 

@@ -276,3 +276,4 @@ def test_gap_closed_starts_from_the_stronger_bar_per_column():
     assert _gap_closed(dec(26, 46, 32), entries) == "0.50 / 0.50 / 0.50"
     worse_oracle = entries[:2] + [{"label": "Supervised oracle (paired PBR)", "dec": dec(60, 22, 24)}]
     assert _gap_closed(dec(26, 46, 32), worse_oracle).startswith("- / ")
+
