@@ -122,13 +122,14 @@ def load_newest(folder: Path, model: torch.nn.Module, optimizers: dict | None = 
     return None, None, skipped
 
 
-def load_weights(path: Path, model: torch.nn.Module, tensors: dict[str, torch.Tensor] | None = None
-                 ) -> dict[str, torch.Tensor]:
-    """Load model weights; a key or shape mismatch is an error that names the key."""
+def load_weights(path: Path, model: torch.nn.Module, tensors: dict[str, torch.Tensor] | None = None,
+                 prefix: str = "model.") -> dict[str, torch.Tensor]:
+    """Load model weights (the tensors named `prefix`...); a key or shape mismatch is an error that
+    names the key."""
     if tensors is None:
         tensors = _load_tensors(path)
     own = model.state_dict()
-    weights = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+    weights = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
     missing = sorted(set(own) - set(weights))
     unexpected = sorted(set(weights) - set(own))
     if missing or unexpected:
@@ -145,13 +146,9 @@ def load_ema(path: Path, ema: torch.nn.Module) -> bool:
     """Load the moving-average weights saved beside a checkpoint's ("ema." keys) into `ema`;
     False when the checkpoint has none (written without them), leaving `ema` as it is."""
     tensors = _load_tensors(path)
-    weights = {k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")}
-    if not weights:
+    if not any(k.startswith("ema.") for k in tensors):
         return False
-    own = ema.state_dict()
-    if set(weights) != set(own) or any(v.shape != own[k].shape for k, v in weights.items()):
-        raise CheckpointError(f"{path}: its moving-average weights do not match the model config")
-    ema.load_state_dict(weights)
+    load_weights(path, ema, tensors, prefix="ema.")
     return True
 
 

@@ -18,10 +18,9 @@ from torch import nn
 
 from .config import Config
 from .losses import chroma_loss, cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
-from .networks import Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
+from .networks import CHANNELS, Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
 from .shading import fit_lighting, shading_loss
 
-CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
 
 
 @runtime_checkable

@@ -9,6 +9,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .sanity import srgb_encode
+from .shading import _C0, _C1, render_sh
+
+# where each intrinsic map sits in a 9-channel stack
+CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
+
 
 def init_weights(module: nn.Module, scheme: str = "normal") -> nn.Module:
     """The references' initialisation, applied to every conv and linear layer of `module`.
@@ -188,8 +194,6 @@ class ShaderRenderer(nn.Module):
     def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
                  residual: float, residual_on: str = "background", bank: int = 0):
         super().__init__()
-        from .shading import _C0, _C1
-
         self.inputs = inputs
         self.residual = residual
         self.residual_on = residual_on
@@ -232,9 +236,6 @@ class ShaderRenderer(nn.Module):
 
     def forward(self, m: torch.Tensor, lighting: torch.Tensor | None = None) -> torch.Tensor:
         """`lighting`: (n, 3, 10) per-sample SH lighting and reflection gain (`fit_lighting`), or None."""
-        from .sanity import srgb_encode
-        from .shading import render_sh
-
         n, a, f = m[:, 0:3], m[:, 3:6], m[:, 6:9]
         if "N" not in self.inputs:
             n = torch.zeros_like(n)
@@ -247,8 +248,7 @@ class ShaderRenderer(nn.Module):
         base = srgb_encode(render_sh(n, a, f, light, gain)) * 2 - 1
         if self.net is None:
             return base
-        chans = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
-        sel = torch.cat([m[:, chans[c]] for c in self.inputs] + [base.to(m.dtype)], dim=1)
+        sel = torch.cat([m[:, CHANNELS[c]] for c in self.inputs] + [base.to(m.dtype)], dim=1)
         res = self.residual * self.net(sel)
         if self.residual_on == "background":  # on the car the image is the shading alone: no room for a code
             res = res * (m[:, 0:3].float().norm(dim=1, keepdim=True) <= 0.5).to(res.dtype)

@@ -119,7 +119,7 @@ def high_frequency(x: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
     return (lap * inner).sum(dim=(1, 2)) / inner.sum(dim=(1, 2)).clamp_min(1)
 
 
-def speckle_scores(pred: torch.Tensor, probe: "ProbeSet", prefix: str = "") -> dict[str, float]:
+def speckle_scores(pred: torch.Tensor, probe: "ProbeSet") -> dict[str, float]:
     """High-frequency energy of predicted normals (unit length) and albedo on the car, over the
     ground truth's: 1 = as smooth as the truth; a hidden code shows as several times more."""
     on = probe.masks[:, 0] >= 0.5
@@ -129,8 +129,8 @@ def speckle_scores(pred: torch.Tensor, probe: "ProbeSet", prefix: str = "") -> d
         if name == "normal":
             p, g = F.normalize(p, dim=1, eps=1e-6), F.normalize(g, dim=1, eps=1e-6)
         hp, hg = float(high_frequency(p, on).mean()), float(high_frequency(g, on).mean())
-        out[f"{prefix}{name}_hf"] = hp
-        out[f"{prefix}{name}_hf_ratio"] = hp / hg if hg > 0 else float("nan")
+        out[f"{name}_hf"] = hp
+        out[f"{name}_hf_ratio"] = hp / hg if hg > 0 else float("nan")
     return out
 
 

@@ -50,6 +50,17 @@ def shading_design(normals: torch.Tensor, albedo: torch.Tensor, reflection: torc
     return torch.cat([luminance(linear(albedo)) * sh_basis(n), luminance(linear(reflection))], dim=1)
 
 
+def _ridge_solve(x: torch.Tensor, w: torch.Tensor, y: torch.Tensor, ridge: float) -> torch.Tensor:
+    """(b, k, 1) weighted least squares of y (b, 1, p) on the k columns x (b, k, p) with weights w
+    (b, 1, p); `ridge`, relative to the mean diagonal of the normal equations, keeps a flat normal
+    map (all columns alike) solvable. Differentiable in x, w and y."""
+    xw = x * w
+    gram = xw @ x.transpose(1, 2)
+    scale = gram.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-6)
+    eye = torch.eye(gram.shape[-1], device=gram.device, dtype=gram.dtype)
+    return torch.linalg.solve(gram + ridge * scale.view(-1, 1, 1) * eye, xw @ y.transpose(1, 2))
+
+
 def fit_shading(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, reflection: torch.Tensor,
                 mask: torch.Tensor, ridge: float = 1e-3, min_pixels: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image, the least-squares lighting (9 SH coefficients and a reflection gain) that explains
@@ -58,17 +69,12 @@ def fit_shading(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor
     residual: (n,) mean |fit - lum(image)| over the mask divided by the mean luminance there (0 for an
     image with fewer than `min_pixels` mask pixels: nothing to fit); coefficients: (n, 10). The
     solve is differentiable, so a loss on the residual moves the maps (and the image), not only the
-    lighting. `ridge`, relative to the mean diagonal of the normal equations, keeps a flat normal map
-    (all columns alike) solvable.
+    lighting (`_ridge_solve`).
     """
     w = mask.float().flatten(2)  # (n, 1, p)
     x = shading_design(normals, albedo, reflection).flatten(2)  # (n, 10, p)
     y = luminance(linear(image)).flatten(2)  # (n, 1, p)
-    xw = x * w
-    gram = xw @ x.transpose(1, 2)  # (n, 10, 10)
-    scale = gram.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-6)
-    eye = torch.eye(gram.shape[-1], device=gram.device, dtype=gram.dtype)
-    coeffs = torch.linalg.solve(gram + ridge * scale.view(-1, 1, 1) * eye, xw @ y.transpose(1, 2))  # (n, 10, 1)
+    coeffs = _ridge_solve(x, w, y, ridge)  # (n, 10, 1)
     fit = coeffs.transpose(1, 2) @ x  # (n, 1, p)
     count = w.sum(dim=(1, 2))
     res = ((fit - y).abs() * w).sum(dim=(1, 2)) / (y * w).sum(dim=(1, 2)).clamp_min(1e-3)
@@ -109,10 +115,5 @@ def fit_lighting(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tenso
     b, p = basis.shape[0], basis.shape[-1]
     x = torch.cat([a.unsqueeze(2) * basis.unsqueeze(1), f.unsqueeze(2)], dim=2).reshape(b * 3, 10, p)
     w = mask.float().flatten(2).repeat_interleave(3, dim=0)  # (b * 3, 1, p)
-    xw = x * w
-    gram = xw @ x.transpose(1, 2)
-    scale = gram.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-6)
-    eye = torch.eye(10, device=gram.device, dtype=gram.dtype)
-    coeffs = torch.linalg.solve(gram + ridge * scale.view(-1, 1, 1) * eye, xw @ y.reshape(b * 3, 1, p).transpose(1, 2))
-    coeffs = coeffs.reshape(b, 3, 10)
+    coeffs = _ridge_solve(x, w, y.reshape(b * 3, 1, p), ridge).reshape(b, 3, 10)
     return coeffs[..., :9], coeffs[..., 9]
