@@ -1,6 +1,6 @@
 """A/B of training objectives on in-memory data, with the probe curves of `train.probe`.
 
-The measurement behind the README's "Making it learn" tables. It trains the project's own
+The measurement behind the "Making it learn" tables (docs/experiment_log.md). It trains the project's own
 model, losses, optimisers and steps (`train.model`, `train.loop.generator_step`,
 `discriminator_step`) on tensors packed once from datasets, so many variants and seeds run
 at once on one GPU (or, slowly, on the CPU) without EXR decoding.

@@ -264,7 +264,7 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 
 @main.command("reproduce")
 @click.option("--budget", type=click.Choice([*_BUDGET_NAMES, "sanity", "sanity-smoke"]), default="smoke", show_default=True,
-              help="smoke/cpu/gpu/paper: the paper's comparison; sanity: the S0/S1 settings (README: Making it learn); "
+              help="smoke/cpu/gpu/paper: the paper's comparison; sanity: the S0/S1 settings (docs/experiment_log.md: Making it learn); "
                    "sanity-smoke: the same at toy size.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: out/reproduce_BUDGET).")

@@ -5,7 +5,7 @@
    and paints) and unseen intrinsics for FID;
 2. trains every model of the paper's Table 1 (and w/o rendering cycle, and the supervised
    oracle) with one identical budget, several at a time on the CPU (one thread each: two
-   1-thread trainings get 16% more done than one 2-thread training here, see README) or one
+   1-thread trainings get 16% more done than one 2-thread training here, see docs/experiment_log.md) or one
    after the other on all GPUs through torchrun;
 3. writes the report (eval.report) with the reference rows.
 Every stage resumes: datasets and runs continue where they stopped, finished ones are skipped.
@@ -53,7 +53,7 @@ BUDGETS = {
                     cyclegan=("cyclegan.ngf=8", "cyclegan.n_blocks=1", "cyclegan.ndf=8"),
                     munit=("munit.dim=8", "munit.n_res=1", "munit.mlp_dim=16", "munit.d_ndf=8", "munit.d_layers=2"),
                     note="toy size: checks the pipeline, its figures mean nothing"),
-    # 64x128 and narrow networks; 5000 steps because the probe curves (README "The cpu comparison
+    # 64x128 and narrow networks; 5000 steps because the probe curves (docs/experiment_log.md "The cpu comparison
     # on a GPU") still fall at 3000: about 5.7 h for the ten runs on 2 CPU cores
     # (bench/objective_sweep.py ran them all at once on one H100 in 11 min)
     "cpu": Budget("256x128", (64, 128), 2000, 400, 48, 200, 5000, "cpu-small", decay_start=3333, rate=1.28,

@@ -79,7 +79,7 @@ class LossConfig:
     rendering_cycle: bool = True  # ablation: off = no M_s -> R -> H cycle: no synthetic intrinsics reach R or H
     decomposition_cycle: bool = True  # ablation: off = no I_r -> H -> R cycle: no real image reaches R or H
     # Eq. 7 sums the terms without weights (paper.toml keeps that). These defaults follow the
-    # measurements of README "Making it learn": cycles at 10 (CycleGAN's and pix2pixHD's lambda),
+    # measurements of docs/experiment_log.md "Making it learn": cycles at 10 (CycleGAN's and pix2pixHD's lambda),
     # GAN terms averaged, D_M's terms at a tenth, L_norm on the car only.
     w_ren: float = 10.0
     w_dec: float = 10.0
@@ -91,11 +91,11 @@ class LossConfig:
     cycle_noise: float = 0.0
     # Not in the paper: each cycle loss trains only the cycle's second network (the first one's
     # output enters it detached), so neither network is rewarded for hiding its input in codes
-    # the other can read (README: "It must learn first"); false = the paper's joint gradients.
+    # the other can read (docs/experiment_log.md "It must learn first"); false = the paper's joint gradients.
     cycle_detach: bool = False
     normal_threshold: float = 0.5  # the length loss applies where |n| > this (not on background)
     # Where L_norm acts: "threshold" (wherever |n| > normal_threshold, on H(I_r) and H(R(M_s))) or
-    # "car" (on H(R(M_s)) where M_s has an object: never on the background, see README)
+    # "car" (on H(R(M_s)) where M_s has an object: never on the background, see docs/experiment_log.md)
     normal_length_on: str = "car"
     # "sum": GAN terms summed over scales and fakes (pix2pixHD); "mean": averaged over both, so
     # each discriminator weighs as one term of Eq. 7 however many scales and fakes it judges
@@ -104,14 +104,14 @@ class LossConfig:
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
     # translations (a weighted mean with gan_reduce "mean"); the discriminators still learn
-    # from both. 1 = the paper; 0 (measured, README "The cpu comparison on a GPU"): the GAN
+    # from both. 1 = the paper; 0 (measured, docs/experiment_log.md "The cpu comparison on a GPU"): the GAN
     # gradient through the reconstructions fought the cycles and cost ~8 degrees of normals.
     w_adv_rec: float = 0.0
     # Not in the paper: R(M_s)'s chromaticity on the car follows its albedo input's, over 4x4
     # cells (train.losses.chroma_loss), the role CycleGAN's identity loss plays for colour
     # composition. The cycles alone are satisfied by any colour bijection the discriminators
     # cannot see (a hue rotation of random paints): R painted every car one colour and H's albedo
-    # did not follow the paint. 10 (measured, README "R paints cars their colour"); 1 did nothing;
+    # did not follow the paint. 10 (measured, docs/experiment_log.md "R paints cars their colour"); 1 did nothing;
     # 0 = the paper.
     w_chroma: float = 10.0
     # Not in the paper: the shading tie (train.shading). Per image, the closed-form SH lighting that

@@ -5,7 +5,7 @@ set with ground truth) it takes each generator term of Eq. 7 (weighted as in tra
 measures its gradient on H_N, H_A, H_F and R: the norm, and the cosine with the direction a
 supervised learner would take on the same batch (H: L1 to I_r's true maps on object pixels;
 R: L1 of R(true maps of I_r) to I_r on object pixels). A term that is large and points away
-from the supervised direction is the one to look at (README: Making it learn).
+from the supervised direction is the one to look at (docs/experiment_log.md "Making it learn").
 """
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ def load_run_checkpoint(run_dir: Path, device: str = "cpu", checkpoint: Path | N
     """`load_run` and the checkpoint file the weights came from.
 
     The generators' moving-average weights are used where the checkpoint has them (run.ema_decay;
-    they probe better and steadier than the raw ones, README "Normals from shading"), as StyleGAN
+    they probe better and steadier than the raw ones, docs/normals_from_shading.md), as StyleGAN
     uses G_ema; `raw` takes the weights the optimiser was training (for gradient diagnosis)."""
     run_dir = Path(run_dir)
     _, cfg = load_run_options(run_dir)

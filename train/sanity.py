@@ -1,4 +1,4 @@
-"""The sanity settings that separate "implementation" from "budget" (README: Making it learn).
+"""The sanity settings that separate "implementation" from "budget" (docs/experiment_log.md "Making it learn").
 
 S0, exact: the "real" images are a fixed analytic shading of held-out intrinsics,
     sRGB(A (0.3 + 0.7 max(0, n.l)) + 0.5 F), l = (0.3, 0.6, 0.7) normalised, camera space,
