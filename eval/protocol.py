@@ -11,6 +11,7 @@ is an overlap: it is refused. Shared car models or environments are allowed but 
 """
 from __future__ import annotations
 
+import hashlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,10 +37,12 @@ class SetInfo:
     cars: Counter = field(default_factory=Counter)
     envmaps: Counter = field(default_factory=Counter)
     sample_key: str | None = None  # None for photo folders
+    identity: dict = field(default_factory=dict)  # resolution and content digest (Dataset.identity)
 
     def summary(self) -> dict:
         return {"role": self.role, "path": str(self.path), "kind": self.kind, "count": self.count, "seed": self.seed,
-                "cars": dict(sorted(self.cars.items())), "envmaps": dict(sorted(self.envmaps.items()))}
+                "cars": dict(sorted(self.cars.items())), "envmaps": dict(sorted(self.envmaps.items())),
+                "resolution": self.identity.get("resolution"), "content_sha256": self.identity.get("manifest_sha256")}
 
 
 def describe(role: str, root: Path) -> SetInfo:
@@ -48,15 +51,18 @@ def describe(role: str, root: Path) -> SetInfo:
     if not (root / "dataset.json").exists():
         if not root.is_dir():
             raise DatasetError(f"{role} {root}: no such dataset or image folder")
-        n = len(image_files(root))
-        return SetInfo(role, root, "images", n)
+        files = image_files(root)
+        digest = hashlib.sha256()
+        for f in files:  # names and sizes: hashing every photo's bytes would cost more than the report
+            digest.update(f"{f.relative_to(root)}\0{f.stat().st_size}\n".encode())
+        return SetInfo(role, root, "images", len(files), identity={"manifest_sha256": digest.hexdigest()})
     ds = open_dataset(root)
     recipe = ds.info.get("recipe") or {}
     key = {k: v for k, v in recipe.items() if k not in _NOT_SAMPLE_FIELDS}
     return SetInfo(role, root, ds.kind, len(ds), ds.info.get("seed"),
                    Counter(r.get("car", {}).get("name", "?") for r in ds.rows),
                    Counter(r.get("envmap", {}).get("name", "?") for r in ds.rows),
-                   repr(sorted(key.items())) if key else None)
+                   repr(sorted(key.items())) if key else None, ds.identity())
 
 
 def _same_samples(a: SetInfo, b: SetInfo) -> bool:

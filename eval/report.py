@@ -9,6 +9,7 @@ import base64
 import html
 import io
 import json
+import os
 import re
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from PIL import Image  # noqa: E402
 
 from blender_gen.conversions import linear_to_srgb, preview_srgb8  # noqa: E402
 from blender_gen.dataset import (INTRINSIC_LAYERS, atomic_write_bytes, atomic_write_json, open_dataset,  # noqa: E402
-                                 save_png)
+                                 save_png, sha256_file)
 from train.config import Config  # noqa: E402
 from train.probe import probe_plot  # noqa: E402
 from train.run_folder import RunFolder  # noqa: E402
@@ -84,21 +85,53 @@ def _cache_key(run: Path, checkpoint: Path, cfg, data: Path, limit: int | None) 
     """What cached predictions depend on: the checkpoint's content (not its path or step: a run
     retrained in place to the same step is another model), the resolved config, the data set and
     its content, the limit."""
-    from blender_gen.dataset import sha256_file
-
     info = open_dataset(data).info
     return {"run": str(Path(run).resolve()), "checkpoint_sha256": sha256_file(checkpoint),
             "config": cfg.to_dict(), "data": str(Path(data).resolve()),
             "data_recipe": info.get("recipe"), "data_count": info.get("count"), "limit": limit}
 
 
-def _cached_predictions(run: Path, data: Path, pred_dir: Path, limit: int | None, progress: bool) -> int:
-    """Decompose `data` into `pred_dir` unless predictions for exactly this key are there; returns the step."""
+# what results.json records per run: which weights (one checkpoint file for every figure), trained how
+RESULT_RUN_FIELDS = ("run", "label", "step", "checkpoint", "checkpoint_sha256", "seed", "size", "trained_on", "slug",
+                     "dec", "fid")
+
+
+def pin_checkpoint(run: Path, folder: Path) -> tuple[Path, int]:
+    """The run's newest readable checkpoint, linked (or copied) into `folder`: every figure of the
+    report comes from this one file, even while the run trains on and prunes its checkpoints."""
+    import shutil
+
+    from train.inference import load_run_checkpoint
+
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for _ in range(5):  # the trainer may prune the newest-but-one between finding and linking it
+        _, _, step, checkpoint = load_run_checkpoint(run)
+        pinned = folder / checkpoint.name
+        try:
+            for src, dst in ((checkpoint.with_suffix(".json"), pinned.with_suffix(".json")), (checkpoint, pinned)):
+                try:
+                    os.link(src, dst)
+                except OSError as exc:
+                    if isinstance(exc, FileNotFoundError):
+                        raise
+                    shutil.copyfile(src, dst)
+            return pinned, step
+        except FileNotFoundError:
+            for f in folder.iterdir():
+                f.unlink()
+    raise OSError(f"--run {run}: its checkpoints changed five times while the report pinned one; retry")
+
+
+def _cached_predictions(run: Path, checkpoint: Path, data: Path, pred_dir: Path, limit: int | None,
+                        progress: bool) -> int:
+    """Decompose `data` with `checkpoint` into `pred_dir` unless predictions for exactly this key
+    are there; returns the step."""
     import shutil
 
     from train.inference import decompose_images, load_run_checkpoint
 
-    cfg, _, step, checkpoint = load_run_checkpoint(run)  # the newest readable checkpoint, hashed and used
+    cfg, _, step, checkpoint = load_run_checkpoint(run, checkpoint=checkpoint)
     key = _cache_key(run, checkpoint, cfg, data, limit)
     info_path = pred_dir / "dataset.json"
     if info_path.exists():
@@ -157,28 +190,35 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
     runs_opts = [(Path(run), *load_run_options(run)) for run in runs]  # a dataset folder given as a run fails here
     sets = {"eval": describe("--data", data), "real": describe("--real", real), "fid": describe("--intrinsics", intrinsics)}
     warnings: list[str] = []
+    trained_on = {}  # run -> content digests of its two training sets (`seeds` refuses a training counted twice)
     for run, opts, _ in runs_opts:
         train_set = describe(f"{run.name} training intrinsics", opts["intrinsics"])
         train_real = describe(f"{run.name} real images", opts["real"])
+        trained_on[run] = [train_set.identity.get("manifest_sha256"), train_real.identity.get("manifest_sha256")]
         sets.setdefault(f"train:{train_set.path}", train_set)
         sets.setdefault(f"trainreal:{train_real.path}", train_real)
         for w in check_sets(train_set, train_real, sets["eval"], sets["fid"]):
             if w not in warnings:
                 warnings.append(w)
     out.mkdir(parents=True, exist_ok=True)
+    slugs = [f"{k:02d}_{re.sub(r'[^A-Za-z0-9]+', '_', run.name)}" for k, (run, _, _) in enumerate(runs_opts)]
+    for stale in (out / "runs").glob("[0-9][0-9]_*"):  # an earlier report's runs must not pass for these
+        if stale.name not in slugs:
+            shutil.rmtree(stale)
     feat = InceptionFeatures(inception)
     real_feats: dict[tuple[int, int], np.ndarray] = {}
     entries = []
     for k, (run, opts, cfg) in enumerate(runs_opts):
-        label = run_label(cfg)
-        slug = f"{k:02d}_{re.sub(r'[^A-Za-z0-9]+', '_', run.name)}"
+        label, slug = run_label(cfg), slugs[k]
         rdir = out / "runs" / slug
         pred_dir = rdir / "predictions"
-        step = _cached_predictions(run, data, pred_dir, limit, progress)
+        checkpoint, step = pin_checkpoint(run, rdir / "checkpoint")
+        _cached_predictions(run, checkpoint, data, pred_dir, limit, progress)
         rows, dec = score_predictions(data, pred_dir, limit=limit, progress=progress)
         write_results(rows, dec, rdir / "decomposition.json")
         shutil.rmtree(rdir / "rendered", ignore_errors=True)  # always this step's renders, never a stale mix
-        rendered = render_dataset(run, intrinsics, rdir / "rendered", limit=limit, progress=progress)
+        rendered = render_dataset(run, intrinsics, rdir / "rendered", limit=limit, progress=progress,
+                                  checkpoint=checkpoint)
         size = (cfg.data.height, cfg.data.width)
         if size not in real_feats:
             n_real, real_imgs = image_source(real, size, limit)
@@ -193,7 +233,11 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
         probe_curve = probe_plot(stats, label)  # None for a run trained without --probe
         if probe_curve:
             atomic_write_bytes(rdir / "probe.png", probe_curve)
+        digest = sha256_file(checkpoint)
+        shutil.rmtree(rdir / "checkpoint")  # its name and digest are recorded; the run keeps the file
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,
+                        "checkpoint": checkpoint.name, "checkpoint_sha256": digest, "seed": cfg.run.seed,
+                        "size": [cfg.data.height, cfg.data.width], "trained_on": trained_on[run],
                         "probe_curve": probe_curve,
                         "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
     if references:
@@ -208,7 +252,7 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
     page = _html(entries, tiles, data, real, Path(intrinsics), grid, datasets, warnings)
     atomic_write_bytes(out / "report.html", page.encode())
     atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
-    atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in ("run", "label", "step", "dec", "fid")}
+    atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in RESULT_RUN_FIELDS}
                                                       for e in entries if not e.get("reference")],
                                              "references": [{k: e[k] for k in ("label", "dec", "fid")}
                                                             for e in entries if e.get("reference")],
@@ -257,7 +301,11 @@ def merged_grids(parts: list[Path], rows: int = 4, tile: tuple[int, int] = (256,
         for d in data.get("datasets", []):
             sets.setdefault(d.get("role"), Path(d["path"]))
         for k, run in enumerate(data.get("runs", [])):
-            found = sorted((folder / "runs").glob(f"{k:02d}_*"))
+            # the folder the report recorded (older reports: the only NN_* folder of that index)
+            found = [folder / "runs" / run["slug"]] if run.get("slug") else sorted((folder / "runs").glob(f"{k:02d}_*"))
+            if len(found) > 1:
+                raise ValueError(f"{folder / 'runs'}/{k:02d}_*: several folders for run '{run['label']}' and no record "
+                                 "of which is its; rerun `iae-eval report` into a fresh --out")
             if not found or not (found[0] / "rendered").is_dir() or not (found[0] / "predictions").is_dir():
                 raise ValueError(f"{folder / 'runs'}/{k:02d}_*: no rendered/ and predictions/ of run '{run['label']}'; "
                                  "the grids need the parts' report folders, not only their results.json")

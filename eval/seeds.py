@@ -43,12 +43,58 @@ def _value(entry: dict, where: tuple[str, str]) -> float | None:
     return 100.0 * v if where[1] == "kid" else v
 
 
+def _run_key(entry: dict) -> tuple | None:
+    """What makes two results one run: the checkpoint's content, or (older results) folder and step."""
+    if entry.get("checkpoint_sha256"):
+        return "sha", entry["checkpoint_sha256"]
+    return ("run", str(entry["run"]), str(entry.get("step"))) if entry.get("run") else None
+
+
+def check_seeds(paths: list[Path], datas: list[dict]) -> None:
+    """Refuse inputs that are not distinct seeds of one comparison: the same results twice, one run
+    in two inputs (a part beside the merge holding it), one training twice (same seed on the same
+    sets), or runs of different budgets (steps, training size, Table-3 set size or resolution)."""
+    files = [_results_file(p).resolve() for p in paths]
+    for k, f in enumerate(files):
+        if f in files[:k]:
+            raise ValueError(f"{paths[k]}: named twice; each seed's results once")
+    seen: dict[tuple, Path] = {}
+    trainings: dict[tuple, Path] = {}
+    budget: dict[str, tuple[Path, tuple]] = {}
+    for path, data in zip(paths, datas):
+        for entry in data.get("runs", []):
+            key = _run_key(entry)
+            if key is not None and key in seen:
+                raise ValueError(f"{path}: run '{entry.get('label')}' ({entry.get('run')}, step {entry.get('step')}) is "
+                                 f"also in {seen[key]}; one run's figures would count as two seeds")
+            seen[key] = path
+            if entry.get("seed") is not None and entry.get("trained_on"):
+                t = (entry.get("label"), entry["seed"], tuple(entry["trained_on"]))
+                if t in trainings:
+                    raise ValueError(f"{path}: '{entry.get('label')}' trained with seed {entry['seed']} on the same sets "
+                                     f"as in {trainings[t]}; seeds need distinct training seeds or data")
+                trainings[t] = path
+            sets = {d.get("role"): d for d in data.get("datasets", [])}
+            ev = sets.get("--data", {})
+            b = (entry.get("step"), tuple(entry.get("size") or ()), ev.get("count"), tuple(ev.get("resolution") or ()))
+            label = str(entry.get("label"))
+            if label in budget and budget[label][1] != b:
+                def say(x: tuple) -> str:
+                    size = "x".join(map(str, x[1])) or "?"
+                    res = "x".join(map(str, x[3])) or "?"
+                    return f"step {x[0]}, training {size}, {x[2]} Table-3 images at {res}"
+                raise ValueError(f"{path}: '{label}' at {say(b)}, but at {say(budget[label][1])} in "
+                                 f"{budget[label][0]}; seeds of one comparison share a budget")
+            budget.setdefault(label, (path, b))
+
+
 def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
     """Seed names (the folders) and, per model label, its figures per seed, in the first file's order."""
     rows: dict[str, Seeded] = {}
     names = []
-    for k, path in enumerate(paths):
-        data = read_results(path)
+    datas = [read_results(p) for p in paths]
+    check_seeds(paths, datas)
+    for k, (path, data) in enumerate(zip(paths, datas)):
         names.append(_seed_name(_results_file(path)))
         for entry in data.get("runs", []) + data.get("references", []):
             label = entry.get("label")
@@ -62,7 +108,8 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
 
 # What must agree between the parts of one seed: every field of the evaluation sets but where
 # they lay (each session had its own output folder)
-_SET_FIELDS = ("kind", "count", "seed", "cars", "envmaps")
+# (results written before sets recorded their resolution and content digest have neither: None on both sides agrees)
+_SET_FIELDS = ("kind", "count", "seed", "cars", "envmaps", "resolution", "content_sha256")
 _SET_ROLES = ("--data", "--real", "--intrinsics")
 
 
@@ -130,9 +177,14 @@ def merge(parts: list[Path]) -> dict:
                 raise ValueError(f"{path}: run '{label}' is also in {seen[label]}; each run belongs to one part")
             seen[label] = path
             runs.append(entry)
+    warnings = sorted({w for d in datas for w in d.get("warnings", [])})
+    steps = {str(e.get("step")) for e in runs}
+    if len(steps) > 1:
+        warnings.append("the joined runs were evaluated at different steps: " +
+                        ", ".join(f"{e['label']} {e.get('step')}" for e in runs))
     return {"runs": runs, "references": datas[0].get("references", []), "datasets": datas[0].get("datasets", []),
-            "warnings": sorted({w for d in datas for w in d.get("warnings", [])}),
-            "parts": [str(p) for p in parts]}
+            "warnings": warnings,
+            "parts": [{"path": str(p), "datasets": d.get("datasets", [])} for p, d in zip(parts, datas)]}
 
 
 def _fmt(vals: list[float | None], digits: int = 1) -> str:

@@ -6,9 +6,11 @@ import re
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from scipy import linalg
 
 from eval.decomposition import normal_angles, scale_invariant_l1, score_predictions, score_sample
@@ -311,3 +313,63 @@ def test_predictions_of_another_set_are_refused_and_shortfalls_exit_nonzero(tmp_
     assert _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--limit", "2", "--quiet").returncode == 0
     neg = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--limit", "-1", check=False)
     assert neg.returncode == 2 and "Invalid value for '--limit'" in neg.stderr
+
+
+def test_a_report_takes_every_figure_from_one_checkpoint_and_records_it(report, tmp_path, monkeypatch):
+    """A run that trains on while its report is made: Table 3, FID renders and the row's step all
+    come from the checkpoint pinned at the start, whose name and digest results.json records."""
+    from safetensors.torch import load_file, save_file
+
+    import eval.report as rep
+    from blender_gen.dataset import sha256_file
+    from train.inference import render_dataset
+
+    out, _ = report
+    results = json.loads((out / "results.json").read_text())
+    first = results["runs"][0]
+    ckpt = Path(first["run"]) / "checkpoints" / first["checkpoint"]
+    assert first["step"] == 3 and first["checkpoint"] == "step_00000003.safetensors"
+    assert first["checkpoint_sha256"] == sha256_file(ckpt) and first["slug"] == "00_full"
+    assert first["seed"] == 0 and len(first["size"]) == 2 and all(first["trained_on"])
+    sets = {d["role"]: d for d in results["datasets"]}
+    assert sets["--data"]["resolution"] == [64, 32] and sets["--data"]["content_sha256"]
+    assert not list((out / "runs").glob("*/checkpoint")), "the pinned copy is removed once the figures are made"
+
+    root = out.parent
+    run = tmp_path / "full"
+    shutil.copytree(root / "full", run)
+    pinned = run / "checkpoints" / "step_00000003.safetensors"
+    scored = rep.score_predictions
+
+    def score_while_training_goes_on(*args, **kwargs):
+        result = scored(*args, **kwargs)
+        newer = run / "checkpoints" / "step_00000099"
+        tensors = load_file(str(pinned))  # the same model with every weight zeroed
+        save_file({k: torch.zeros_like(v) if k.startswith(("model.", "ema.")) else v for k, v in tensors.items()},
+                  str(newer) + ".safetensors")
+        state = json.loads(pinned.with_suffix(".json").read_text())
+        (Path(str(newer) + ".json")).write_text(json.dumps({**state, "step": 99}))
+        return result
+
+    monkeypatch.setattr(rep, "score_predictions", score_while_training_goes_on)
+    rep.build_report([run], root / "pbr", root / "photos", tmp_path / "o", root / "unseen", grid=2, progress=False,
+                     references=False)
+    row = json.loads((tmp_path / "o" / "results.json").read_text())["runs"][0]
+    assert (row["step"], row["checkpoint"]) == (3, "step_00000003.safetensors")
+    assert row["checkpoint_sha256"] == sha256_file(pinned)
+    again = render_dataset(run, root / "unseen", tmp_path / "again", progress=False, checkpoint=pinned)
+    used = sorted((tmp_path / "o" / "runs" / "00_full" / "rendered").glob("*.png"))
+    assert [p.read_bytes() for p in used] == [p.read_bytes() for p in again], "FID renders of the pinned weights"
+    newest = render_dataset(run, root / "unseen", tmp_path / "newest", progress=False)
+    assert newest[0].read_bytes() != again[0].read_bytes()  # the test can fail: the newer weights render otherwise
+
+
+def test_a_report_clears_runs_of_an_earlier_report_in_its_folder(report, tmp_path):
+    out, _ = report
+    stale = out / "runs" / "00_old"
+    (stale / "rendered").mkdir(parents=True)
+    root = out.parent
+    _cli("report", str(root / "full"), "--data", str(root / "pbr"), "--real", str(root / "photos"),
+         "--intrinsics", str(root / "unseen"), "--out", str(out), "--grid", "2", "--quiet")
+    assert not stale.exists()
+    assert json.loads((out / "results.json").read_text())["runs"][0]["slug"] == "00_full"

@@ -162,3 +162,63 @@ def test_merge_draws_the_joined_reports_pictures_from_the_parts_folders(tmp_path
                                     "--grids", str(tmp_path / "g2")])
     assert bad.exit_code != 0 and "no rendered/ and predictions/ of run 'Ours, w/o A'" in bad.output
     assert not (tmp_path / "t.json").exists() and not (tmp_path / "g2").exists()
+
+
+def _edit(folder, fn):
+    info = json.loads((folder / "results.json").read_text())
+    fn(info)
+    (folder / "results.json").write_text(json.dumps(info))
+    return folder
+
+
+def test_merge_compares_resolution_and_content_and_says_the_steps(tmp_path):
+    from eval.seeds import merge
+
+    def resolution(r):
+        def edit(info):
+            for d in info["datasets"]:
+                d.update(resolution=list(r) if d["role"] == "--data" else [128, 64], content_sha256="same")
+        return edit
+
+    a = _edit(_part(tmp_path / "a", [("Ours (full)", 38.0)]), resolution((256, 128)))
+    b = _edit(_part(tmp_path / "b", [("Ours, w/o A", 35.0)]), resolution((512, 256)))
+    with pytest.raises(ValueError, match=r"--data set differs .* in resolution"):
+        merge([a, b])
+    c = _edit(_part(tmp_path / "c", [("Ours, w/o A", 35.0)]), resolution((256, 128)))
+    _edit(c, lambda info: info["datasets"][0].update(content_sha256="regenerated"))
+    with pytest.raises(ValueError, match=r"--data set differs .* in content_sha256"):
+        merge([a, c])
+    d = _edit(_part(tmp_path / "d", [("Ours, w/o A", 35.0)]), resolution((256, 128)))
+    _edit(a, lambda info: info["runs"][0].update(step=5000))
+    _edit(d, lambda info: info["runs"][0].update(step=20))
+    joined = merge([a, d])
+    assert [p["path"] for p in joined["parts"]] == [str(a), str(d)] and joined["parts"][1]["datasets"]
+    assert any("different steps: Ours (full) 5000, Ours, w/o A 20" in w for w in joined["warnings"])
+
+
+def test_seeds_refuses_one_report_twice_and_mixed_budgets(tmp_path):
+    def run(seed, step=5000, size=(64, 128), sha=None):
+        def edit(info):
+            for k, r in enumerate(info["runs"]):
+                r.update(seed=seed, step=step, size=list(size), trained_on=["intr", "real"], run=f"/runs/{r['label']}",
+                         checkpoint_sha256=f"{sha or seed}-{k}")
+        return edit
+
+    a = _edit(_part(tmp_path / "s21" / "report", [("Ours (full)", 38.0)]), run(21))
+    with pytest.raises(ValueError, match="named twice"):
+        load([a, a / "results.json"])
+    copy = _edit(_part(tmp_path / "copy" / "report", [("Ours (full)", 38.0)]), run(21))
+    with pytest.raises(ValueError, match="also in"):  # the same checkpoint's figures under another name
+        load([a, copy])
+    _edit(copy, run(21, sha="x"))  # a retraining: same seed, same data
+    with pytest.raises(ValueError, match="same sets"):
+        load([a, copy])
+    short = _edit(_part(tmp_path / "short" / "report", [("Ours (full)", 38.0)]), run(22, step=20, size=(32, 64)))
+    with pytest.raises(ValueError, match=r"step 20, training 32x64, .*, but at step 5000, training 64x128"):
+        load([a, short])
+    b = _edit(_part(tmp_path / "s22" / "report", [("Ours (full)", 37.0)]), run(22))
+    assert load([a, b])[0] == ["s21", "s22"]
+    joined = tmp_path / "joined.json"
+    joined.write_text((a / "results.json").read_text())  # a merge holding the part beside it
+    with pytest.raises(ValueError, match="also in"):
+        load([a, joined])

@@ -72,12 +72,17 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, 
 @click.option("--seed", type=int, default=0, show_default=True, help="Which intrinsics and probe images form the batch.")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the figures as JSON.")
+@click.option("--force", is_flag=True, help="Replace an existing --json file (never one inside a run or dataset folder).")
 @click.option("--device", default="auto", show_default=True)
-def diagnose(run_dir, probe, checkpoint, batch, seed, json_out, device) -> None:
+def diagnose(run_dir, probe, checkpoint, batch, seed, json_out, force, device) -> None:
     """Per loss term: its gradient norm on H_N, H_A, H_F and R and its cosine with the supervised direction."""
     from .diagnose import diagnose_run, format_diagnosis
 
     with one_line_errors(EXPECTED + (ValueError,)):
+        if json_out:
+            from blender_gen.outputs import refuse_output
+
+            refuse_output(json_out, "--json", force)
         result = diagnose_run(run_dir, probe, checkpoint, batch, seed, _device(device))
         if json_out:
             from blender_gen.dataset import atomic_write_json

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from blender_gen.dataset import atomic_target, sha256_file
+from blender_gen.outputs import OutputRefused, refuse_output as _refuse_output
 from .inference import load_run_checkpoint
 
 FORMATS = ("onnx", "torchscript")
@@ -37,26 +38,11 @@ MAX_PIXELS = 4096 * 4096
 
 
 def refuse_output(out: Path, option: str, force: bool) -> Path:
-    """An output file must not replace an existing file (unless `force`) nor land inside a run
-    folder, where it could take the place of a checkpoint or a run's own file."""
-    out = Path(out)
-    for folder in [out.resolve().parent, *out.resolve().parent.parents]:
-        if (folder / "training_options.json").exists():
-            raise ExportError(f"{option} {out}: inside the run folder {folder}; write it elsewhere")
-    if out.exists() and not force:
-        raise ExportError(f"{option} {out}: exists; choose a new file or pass --force to replace it")
-    if out.exists() and not out.is_file():
-        raise ExportError(f"{option} {out}: exists and is not a file")
-    folder = out.resolve().parent
-    while not folder.exists():
-        folder = folder.parent
-    try:  # before any work: not "No such file" after all of it. A probe file, since os.access
-        fd, probe = tempfile.mkstemp(prefix=".iae_probe_", dir=folder)  # says yes to root anywhere
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise ExportError(f"{option} {out}: cannot write in {folder}: {exc.strerror or exc}") from None
-    return out
+    """The writers' rule (blender_gen.outputs), raised as an ExportError."""
+    try:
+        return _refuse_output(out, option, force)
+    except OutputRefused as exc:
+        raise ExportError(str(exc)) from None
 
 
 class ExportError(ValueError):

@@ -73,10 +73,10 @@ def fresh_output(out: Path) -> Path:
 def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cpu", batch: int = 4,
                    style_seed: int = 0, limit: int | None = None, progress: bool = True,
                    video: Path | None = None, side_by_side: bool = False, fps: float = 12.0,
-                   force_video: bool = False) -> list[Path]:
+                   force_video: bool = False, checkpoint: Path | None = None) -> list[Path]:
     """R applied to every sample of an intrinsics dataset: one sRGB PNG per sample.
 
-    `video` also assembles the frames in sample order (a turntable's path) into an MP4 or GIF;
+    `checkpoint` pins the weights (default: the run's newest checkpoint). `video` also assembles the frames in sample order (a turntable's path) into an MP4 or GIF;
     `side_by_side` puts the intrinsics (normal, albedo, reflection) left of R's frame and, for a
     PBR dataset, Cycles' image right of it.
     """
@@ -87,7 +87,7 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
 
         check_video_path(video)
         refuse_output(video, "--video", force_video)  # checked before any frame is rendered
-    cfg, model, _ = load_run(run_dir, device)
+    cfg, model, _ = load_run(run_dir, device, checkpoint)
     data = IntrinsicsData(intrinsics, cfg.data.height, cfg.data.width)
     cycles = RealImages(intrinsics, cfg.data.height, cfg.data.width) if side_by_side and data.ds.kind == "pbr" else None
     n = len(data) if limit is None else min(limit, len(data))
