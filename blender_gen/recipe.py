@@ -77,8 +77,65 @@ class Recipe:
 
 
 def _file_identity(path: str) -> dict:
+    """A file by content; a model file also by every file its import reads (an OBJ's .mtl and
+    textures, a glTF's external buffers and images), so editing one of them makes another recipe."""
     p = Path(path)
-    return {"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+    d = {"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+    reads = companion_files(p)
+    if reads:  # absent for a self-contained file: recipes made before this keep their identity
+        d["reads"] = [{"name": rel, "sha256": hashlib.sha256((p.parent / rel).read_bytes()).hexdigest()}
+                      if (p.parent / rel).is_file() else {"name": rel, "missing": True} for rel in reads]
+    return d
+
+
+_MTL_MAPS = ("map_", "bump", "disp", "decal", "refl", "norm")
+
+
+def _named_file(folder: Path, rest: str) -> str | None:
+    """The file a directive names: the whole rest of the line if it exists, else its last token
+    (texture options such as `-bm 0.5` come first)."""
+    rest = rest.strip()
+    if not rest:
+        return None
+    return rest if (folder / rest).is_file() else rest.split()[-1]
+
+
+def companion_files(path: Path) -> list[str]:
+    """Files (relative to the model's folder, sorted) that importing `path` also reads."""
+    path = Path(path)
+    folder, suffix = path.parent, path.suffix.lower()
+    found: set[str] = set()
+    if suffix == ".obj":
+        libs = []
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("mtllib"):
+                    rest = line[len("mtllib"):].strip()
+                    libs += [rest] if (folder / rest).is_file() else rest.split()
+        for lib in libs:
+            found.add(lib)
+            if not (folder / lib).is_file():
+                continue
+            for line in (folder / lib).read_text(encoding="utf-8", errors="replace").splitlines():
+                key, _, rest = line.strip().partition(" ")
+                if key.lower().startswith(_MTL_MAPS):
+                    name = _named_file((folder / lib).parent, rest)
+                    if name:
+                        found.add(str(Path(lib).parent / name) if Path(lib).parent != Path(".") else name)
+    elif suffix == ".gltf":
+        import json
+
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError):
+            return []  # the importer reports a broken file; its identity is its bytes
+        for item in doc.get("buffers", []) + doc.get("images", []):
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str) and uri and not uri.startswith("data:"):
+                from urllib.parse import unquote
+
+                found.add(unquote(uri))
+    return sorted(found)
 
 
 def recipe_from_identity(info: dict) -> dict:

@@ -375,6 +375,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
     click.echo(f"  output    {plan.out}" + (f" (data in {plan.data_dir})" if data is not None else ""))
     with one_line_errors():
         plan.check_configs()
+        plan.check_shared_data()
     if gpus:
         click.echo(f"  expected  about {plan.estimate_minutes():.0f} min (GPU rates are a guess)")
     else:  # CPUs differ by more than 2x: time a few steps of every run here, lanes side by side
@@ -393,7 +394,8 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
         return
     if shutil.which("torchrun") is None and gpus > 1:
         raise click.ClickException("torchrun not found on PATH (it comes with torch)")
-    reproduce(plan)
+    with one_line_errors():
+        reproduce(plan)
 
 
 def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | None, threads: int | None, seed: int,

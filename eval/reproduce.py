@@ -140,6 +140,21 @@ class Plan:
             return ["torchrun", "--standalone", f"--nproc_per_node={self.gpus}", "-m", "train.cli", *cmd]
         return [sys.executable, "-m", "train.cli", *cmd]
 
+    def check_shared_data(self) -> None:
+        """Refuse a --data folder whose sets were made for other counts: the generators would extend
+        (or stop short of) sets that other parts of the seed already trained on."""
+        import json
+
+        for _, args in self.dataset_commands():
+            folder, count = Path(args[args.index("--out") + 1]), int(args[args.index("--count") + 1])
+            info_path = folder / "dataset.json"
+            if not info_path.exists():
+                continue
+            had = json.loads(info_path.read_text()).get("count_requested")
+            if had is not None and int(had) != count:
+                raise ValueError(f"--data {self.data_dir}: {folder.name} was made with {had} samples and this plan asks "
+                                 f"for {count}; runs on it trained on {had}: use another --data, or the same counts")
+
     def check_configs(self) -> None:
         """Resolve every run's config now (ConfigError names the setting), so a size the networks
         cannot take fails before any data is generated."""
@@ -266,6 +281,7 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
     with locked_folder(plan.data_dir, "--data",
                        wait=lambda holder: click.echo(f"[data] waiting: {holder} is generating or checking "
                                                       f"{plan.data_dir}")):
+        plan.check_shared_data()
         for k, (what, args) in enumerate(plan.dataset_commands(), 1):
             click.echo(f"[data {k}/4] {what}")
             _run(_gen(args), logs / "data.log")

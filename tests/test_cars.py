@@ -188,3 +188,35 @@ def test_a_random_car_dataset_renders_a_new_car_per_block_and_resumes_identicall
     (out / "manifest.jsonl").write_text("\n".join(line for line in lines if json.loads(line)["index"] != 3) + "\n")
     run_gen(*args)
     assert (out / "samples" / "000003.exr").read_bytes() == before
+
+
+def test_a_recipe_is_identified_by_every_file_a_model_import_reads(tmp_path):
+    """Editing an OBJ's .mtl or texture, or a glTF's external buffer, makes another recipe: a set
+    extended after the edit is refused instead of mixing samples of two models."""
+    from blender_gen.recipe import Recipe, companion_files, identity_diff
+
+    (tmp_path / "tex").mkdir()
+    (tmp_path / "tex" / "paint.png").write_bytes(b"png v1")
+    (tmp_path / "car.mtl").write_text("newmtl body\nKd 0.8 0.1 0.1\nmap_Kd -bm 1.0 tex/paint.png\n")
+    obj = tmp_path / "car.obj"
+    obj.write_text("mtllib car.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl body\nf 1 2 3\n")
+    assert companion_files(obj) == ["car.mtl", "tex/paint.png"]
+    recipe = Recipe(kind="intrinsics", seed=0, width=64, height=32, cars=(str(obj),))
+    before = recipe.identity()
+    (tmp_path / "car.mtl").write_text("newmtl body\nKd 0.1 0.8 0.1\nmap_Kd -bm 1.0 tex/paint.png\n")
+    assert identity_diff(before, recipe.identity()) is not None
+    edited = recipe.identity()
+    (tmp_path / "tex" / "paint.png").write_bytes(b"png v2")
+    assert identity_diff(edited, recipe.identity()) is not None
+    gltf = tmp_path / "car.gltf"
+    (tmp_path / "car.bin").write_bytes(b"\0" * 12)
+    gltf.write_text('{"buffers": [{"uri": "car.bin", "byteLength": 12}], '
+                    '"images": [{"uri": "data:image/png;base64,AAAA"}]}')
+    assert companion_files(gltf) == ["car.bin"]
+    g = Recipe(kind="intrinsics", seed=0, width=64, height=32, cars=(str(gltf),))
+    first = g.identity()
+    (tmp_path / "car.bin").write_bytes(b"\1" * 12)
+    assert identity_diff(first, g.identity()) is not None
+    plain = tmp_path / "plain.obj"
+    plain.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")  # a self-contained file keeps the identity it had
+    assert "reads" not in Recipe(kind="intrinsics", seed=0, width=64, height=32, cars=(str(plain),)).identity()["cars"][0]

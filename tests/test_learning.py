@@ -3,6 +3,7 @@ gradient diagnosis, the sanity sets and the environment background of intrinsics
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from blender_gen.dataset import sha256_file
 from train.config import load_config
 from train.data import CachedTensors, IntrinsicsData, RealImages, flip_stack
 from train.losses import chroma_loss
@@ -252,6 +254,28 @@ def test_fit_probe_logs_curves_and_diagnose_reads_the_run(data, tmp_path):
     assert terms["G/adv_D_I_fake_I"]["H_N"]["grad_norm"] == 0
     assert terms["G/normal_length"]["H_A"]["grad_norm"] == 0 and terms["G/normal_length"]["H_F"]["grad_norm"] == 0
     assert terms["G/ren_cycle"]["H_N"]["grad_norm"] > 0
+
+    def diagnose(*args):
+        return subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--batch", "2", *args],
+                              capture_output=True, text=True, cwd=ROOT)
+
+    other = tmp_path / "other_run" / "checkpoints"  # another run's checkpoint under this run's name: refused
+    shutil.copytree(run / "checkpoints", other)
+    proc = diagnose("--probe", str(data["pbr"]), "--checkpoint", str(next(other.glob("*.safetensors"))))
+    assert proc.returncode == 1 and "not a checkpoint of --run" in proc.stderr and "Traceback" not in proc.stderr
+    # a NaN in a probe sample: a one-line error naming the sample, not a table of nan
+    from blender_gen.dataset import read_exr, write_exr
+
+    bad = tmp_path / "bad_probe"
+    shutil.copytree(data["pbr"], bad)
+    layers = read_exr(bad / "samples" / "000001.exr")
+    layers["albedo"][3, 3] = np.nan
+    write_exr(bad / "samples" / "000001.exr", layers)
+    rows = [json.loads(x) for x in (bad / "manifest.jsonl").read_text().splitlines()]
+    rows[1]["sha256"] = sha256_file(bad / "samples" / "000001.exr")
+    (bad / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    proc = diagnose("--probe", str(bad))
+    assert proc.returncode == 1 and "000001.exr: layer 'albedo' holds NaN" in proc.stderr, proc.stderr
 
 
 def test_diagnose_of_a_baseline_is_a_one_line_error(data, tmp_path):

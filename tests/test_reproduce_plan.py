@@ -113,3 +113,21 @@ def test_the_sanity_settings_refuse_a_shared_data_folder(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "sanity-smoke", "--data",
                            str(tmp_path), "--dry-run"], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 2 and "--data" in proc.stderr and "OUT/data" in proc.stderr
+
+
+def test_a_part_with_other_counts_refuses_the_shared_data_folder(tmp_path):
+    from dataclasses import replace
+
+    shared = tmp_path / "shared"
+    plan = Plan(BUDGETS["smoke"], tmp_path / "part1", 0, 1, 1, 0, ["full"], data=shared)
+    plan.check_shared_data()  # nothing there yet
+    (shared / "intrinsics").mkdir(parents=True)
+    (shared / "intrinsics" / "dataset.json").write_text(f'{{"count": 32, "count_requested": {BUDGETS["smoke"].n_intrinsics}}}')
+    plan.check_shared_data()  # made for this plan's counts
+    bigger = Plan(replace(BUDGETS["smoke"], n_intrinsics=64), tmp_path / "part2", 0, 1, 1, 0, ["no_A"], data=shared)
+    with pytest.raises(ValueError, match=r"intrinsics was made with 32 samples and this plan asks for 64"):
+        bigger.check_shared_data()
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--data", str(shared),
+                           "--out", str(tmp_path / "part2"), "--intrinsics", "64", "--runs", "no_A", "--dry-run"],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 1 and "was made with 32 samples" in proc.stderr and "Traceback" not in proc.stderr

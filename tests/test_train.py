@@ -448,3 +448,30 @@ def test_the_supervised_oracle_learns_from_pbr_pairs_and_needs_a_pbr_set(data, t
         fit(tmp_path / "o2", cfg, str(intr), str(photos), max_steps=2, progress=False)
     with pytest.raises(ConfigError, match="loss.gan does not apply to model.kind = 'oracle'"):
         load_config("cpu-small", ["model.kind=oracle", "loss.gan=lsgan"])
+
+
+def test_training_refuses_a_set_being_written_or_incomplete_and_a_set_that_changed_on_resume(tmp_path):
+    from blender_gen.dataset import DatasetError, locked_folder
+
+    intr, photos = tiny_intrinsics(tmp_path / "intr", n=4), tiny_photos(tmp_path / "photos")
+    run = tmp_path / "run"
+    with locked_folder(intr):  # a generator still writing the set
+        with pytest.raises(DatasetError, match=r"--intrinsics .* is being written by pid"):
+            fit(run, tiny_cfg(), str(intr), str(photos), max_steps=1, progress=False)
+    info = json.loads((intr / "dataset.json").read_text())
+    (intr / "dataset.json").write_text(json.dumps({**info, "count_requested": 6}))  # stopped at 4 of 6
+    with pytest.raises(DatasetError, match=r"incomplete \(4 of 6 samples\)"):
+        fit(run, tiny_cfg(), str(intr), str(photos), max_steps=1, progress=False)
+    assert not run.exists()
+    (intr / "dataset.json").write_text(json.dumps(info))
+    fit(run, tiny_cfg(), str(intr), str(photos), max_steps=1, progress=False)
+    recorded = json.loads((run / "training_options.json").read_text())["data_identity"]
+    assert recorded["intrinsics"]["count"] == 4 and recorded["real"]["count"] == 4
+    tiny_intrinsics(intr, n=6)  # the set grew (regenerated with more samples) before the resume
+    with pytest.raises(ConfigError, match=r"--intrinsics .* changed since .* \(4 -> 6 samples\).*--accept-changed-data"):
+        fit(run, max_steps=2, progress=False)
+    result = fit(run, max_steps=2, progress=False, accept_changed_data=True)
+    assert result["step"] == 2
+    opts = json.loads((run / "training_options.json").read_text())
+    assert opts["data_identity"]["intrinsics"]["count"] == 6
+    assert opts["data_changes"][0]["step"] == 1 and opts["data_changes"][0]["was"]["intrinsics"]["count"] == 4

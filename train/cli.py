@@ -38,8 +38,10 @@ def main() -> None:
               help="PBR set with ground truth, never used for gradients: every run.probe_every steps H's errors, the "
                    "constant predictor's and R's input sensitivity go to stats.jsonl, TensorBoard and probe.png.")
 @click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
+@click.option("--accept-changed-data", is_flag=True,
+              help="Resume although --intrinsics or --real changed since the run last trained (recorded in the run).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, quiet) -> None:
+def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, accept_changed_data, quiet) -> None:
     """Train a model; under `torchrun --nproc_per_node K` it trains on K processes.
 
     Ctrl-C or SIGTERM saves a checkpoint after the current step; the same command resumes.
@@ -53,7 +55,7 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, 
         with one_line_errors(EXPECTED + (NonFiniteLoss,)):
             cfg = load_config(config, list(overrides)) if config else None
             result = run_fit(run_dir, cfg, intrinsics, real, max_steps, _device(device), progress=not quiet,
-                             probe=probe)
+                             probe=probe, accept_changed_data=accept_changed_data)
     except Interrupted as exc:
         click.echo(f"{run_dir}: {exc}", err=True)
         sys.exit(128 + exc.signum)

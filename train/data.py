@@ -22,6 +22,52 @@ from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, open_dataset
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
+def set_identity(root: Path) -> dict:
+    """What a training set is now: a dataset's Dataset.identity(), or for a photo folder the
+    count and a digest of its file names and sizes. A run records it and compares on resume."""
+    import hashlib
+
+    root = Path(root)
+    if (root / "dataset.json").exists():
+        return open_dataset(root).identity()
+    files = image_files(root)
+    digest = hashlib.sha256()
+    for f in files:  # names and sizes: hashing every photo's bytes would cost more than a resume
+        digest.update(f"{f.relative_to(root)}\0{f.stat().st_size}\n".encode())
+    return {"kind": "images", "count": len(files), "manifest_sha256": digest.hexdigest()}
+
+
+def check_ready(root: Path, option: str) -> None:
+    """Refuse a dataset that a generator is still writing or that stopped short of its count:
+    training would see only the samples that happened to be there."""
+    import errno
+    import fcntl
+
+    from blender_gen.dataset import LOCK_NAME, read_info, read_manifest
+
+    root = Path(root)
+    if not (root / "dataset.json").exists():
+        return
+    lock = root / LOCK_NAME
+    if lock.exists():
+        fd = os.open(lock, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise
+            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+            raise DatasetError(f"{option} {root} is being written by {holder}; train once it has finished") from None
+        finally:
+            os.close(fd)
+    info = read_info(root)
+    n = len(read_manifest(root / "manifest.jsonl"))
+    wanted = info.get("count_requested", n)
+    if info.get("complete") is False or n < wanted:
+        raise DatasetError(f"{option} {root}: incomplete ({n} of {wanted} samples); rerun its generator to finish "
+                           "it (it resumes), then train")
+
+
 def image_files(root: Path) -> list[Path]:
     """The JPG/PNG photos under a folder (recursively), in a fixed order."""
     return sorted(p for p in Path(root).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)

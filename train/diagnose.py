@@ -71,8 +71,12 @@ def diagnose_run(run_dir: Path, probe: Path, checkpoint: Path | None = None, bat
     from .data import IntrinsicsData
     from .inference import load_run_checkpoint, load_run_options
     from .probe import load_probe
+    from .run_folder import RunFolder
 
     opts, cfg = load_run_options(run_dir)
+    own = RunFolder(run_dir).checkpoints.resolve()
+    if checkpoint is not None and Path(checkpoint).resolve().parent != own:  # its figures would carry this run's name
+        raise ValueError(f"--checkpoint {checkpoint}: not a checkpoint of --run {run_dir} (those are in {own})")
     cfg, model, step, path = load_run_checkpoint(run_dir, device, checkpoint, raw=True)
     gen = torch.Generator().manual_seed(seed)
     intr = IntrinsicsData(Path(opts["intrinsics"]), cfg.data.height, cfg.data.width)

@@ -22,9 +22,10 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
-from .checkpoint import latest_checkpoint, load_ema, load_newest, save_checkpoint
+from .checkpoint import latest_checkpoint, load_ema, load_newest, read_state, save_checkpoint
 from .config import Config, ConfigError, config_from_dict, unread_sections
-from .data import CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, infinite_loader
+from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
+                   set_identity)
 from .model import build_model
 from .probe import EMA_PREFIX, evaluate_probe, pixel_prior, probe_plot
 from .run_folder import RunFolder
@@ -146,12 +147,15 @@ def _resolve(flag: str, device: str) -> bool:
 
 
 def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None,
-                probe: str | None = None) -> tuple[Config, dict]:
+                probe: str | None = None, accept_changed_data: bool = False) -> tuple[Config, dict]:
     """New run: check the data, then write training_options.json. Existing run: read it (the run resumes).
 
     Everything is validated before the folder is written, so a failed start never leaves a
     folder that refuses the corrected command. A folder whose run has no checkpoint yet holds
     nothing to resume and takes a new config.
+
+    The run records its two sets' identities (count and content digest); a resume on a set that
+    changed since is refused unless `accept_changed_data`, which records the change.
     """
     run = RunFolder(run_dir)
     if run.exists():
@@ -170,6 +174,20 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
                 raise ConfigError(f"--{moved[0]} {intrinsics if moved[0] == 'intrinsics' else real}: the run in "
                                   f"{run_dir} was trained on {opts[moved[0]]}")
             check_data(saved, opts["intrinsics"], opts["real"])
+            now = {k: set_identity(Path(opts[k])) for k in ("intrinsics", "real")}
+            was = opts.get("data_identity")
+            if was is not None and was != now:
+                differ = [k for k in now if was.get(k) != now[k]]
+                k = differ[0]
+                how = (f"{was[k].get('count')} -> {now[k].get('count')} samples" if was[k].get("count") != now[k].get("count")
+                       else "same count, other content")
+                if not accept_changed_data:
+                    raise ConfigError(f"--{k} {opts[k]}: changed since the run in {run_dir} last trained on it ({how}); "
+                                      "restore it, or resume with --accept-changed-data to train on it as it is now")
+                opts.setdefault("data_changes", []).append({"step": _newest_step(run), "was": was, "now": now})
+            if was != now:  # recorded at the first resume of a run from before identities were kept, or accepted
+                opts["data_identity"] = now
+                atomic_write_json(run.options_path, opts)
             if probe and str(Path(probe).resolve()) != opts.get("probe"):  # never used for gradients: may change
                 opts["probe"] = str(Path(probe).resolve())
                 atomic_write_json(run.options_path, opts)
@@ -183,7 +201,8 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
     if probe:
         check_probe(probe)
     opts = {"config": cfg.to_dict(), "intrinsics": str(Path(intrinsics).resolve()), "real": str(Path(real).resolve()),
-            "sections_not_read": unread_sections(cfg)}
+            "sections_not_read": unread_sections(cfg),
+            "data_identity": {"intrinsics": set_identity(Path(intrinsics)), "real": set_identity(Path(real))}}
     if probe:
         opts["probe"] = str(Path(probe).resolve())
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -192,8 +211,16 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
     return cfg, opts
 
 
+def _newest_step(run: RunFolder) -> int | None:
+    newest = latest_checkpoint(run.checkpoints)
+    return None if newest is None else int(read_state(newest)["step"])
+
+
 def check_data(cfg: Config, intrinsics: str, real: str) -> None:
-    """Open both datasets (DatasetError names the one that is missing or malformed)."""
+    """Open both datasets (DatasetError names the one that is missing, malformed, being written
+    or incomplete)."""
+    check_ready(Path(intrinsics), "--intrinsics")
+    check_ready(Path(real), "--real")
     IntrinsicsData(Path(intrinsics), cfg.data.height, cfg.data.width)
     reals = RealImages(Path(real), cfg.data.height, cfg.data.width)
     if cfg.model.kind == "oracle" and reals.ds is None:
@@ -312,7 +339,8 @@ class StatsLog:
 
 
 def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None, real: str | None = None,
-        max_steps: int | None = None, device: str = "cpu", progress: bool = True, probe: str | None = None) -> dict:
+        max_steps: int | None = None, device: str = "cpu", progress: bool = True, probe: str | None = None,
+        accept_changed_data: bool = False) -> dict:
     """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's).
 
     Ctrl-C or SIGTERM finishes the current step, saves a checkpoint and raises Interrupted.
@@ -325,7 +353,7 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     created = not run_dir.exists()
     try:
         with locked_folder(run_dir, "--run-dir"):
-            return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe)
+            return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe, accept_changed_data)
     except BaseException:
         if created and run_dir.is_dir() and folder_is_empty(run_dir):  # a refused start leaves no folder
             (run_dir / LOCK_NAME).unlink(missing_ok=True)
@@ -334,13 +362,13 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
 
 
 def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None, max_steps: int | None,
-         device: str, progress: bool, probe: str | None) -> dict:
+         device: str, progress: bool, probe: str | None, accept_changed_data: bool = False) -> dict:
     dd = init_distributed(device)
     if device.startswith("cuda") and dd.world > 1:
         device = f"cuda:{dd.local_rank}"
         torch.cuda.set_device(dd.local_rank)
     if dd.main:
-        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real, probe)
+        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real, probe, accept_changed_data)
     if dd.world > 1:
         dist.barrier()
         if not dd.main:

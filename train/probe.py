@@ -71,6 +71,10 @@ def load_probe(root: Path, height: int, width: int, limit: int | None = 64) -> P
     imgs, maps, masks = [], [], []
     for i in range(n):
         layers = ds.load(i, ["rgb", *INTRINSIC_LAYERS, "mask"])
+        for k, arr in layers.items():  # NaN would give plausible wrong figures (zero correlations), not an error
+            if not np.isfinite(arr).all():
+                raise DatasetError(f"--probe {ds.path(i)}: layer '{k}' holds NaN or infinite values (sample "
+                                   f"{ds.rows[i]['index']}); regenerate it or choose another probe set")
         stack = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], axis=-1)
         for dst, arr in ((imgs, to_network("rgb", layers["rgb"])), (maps, stack),
                          (masks, np.clip(layers["mask"][..., :1].astype(np.float32), 0, 1))):
