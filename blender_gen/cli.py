@@ -331,6 +331,15 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         _fail("--preview: one PNG for one model; with several, NAME.png is written beside each NAME.toml")
     if (forward is None) != (up is None):
         _fail("--forward and --up: give both or neither")
+    if preview is not None and preview.resolve() == out.resolve():
+        _fail(f"--preview {preview}: the same file as --out; the picture would replace the rules")
+    names: dict[str, str] = {}
+    for token in tokens:
+        name = Path(token.split("+")[0]).stem
+        if several and name in names:
+            _fail(f"{names[name]} and {token}: both would write {out / (name + '.toml')}; "
+                  "label models with one file name into separate --out folders")
+        names[name] = token
     targets = []
     for token in tokens:
         name = Path(token.split("+")[0]).stem

@@ -66,6 +66,17 @@ def _trained_background(run_dir: Path) -> str | None:
         return None
 
 
+def _check_consecutive(ds, option: str, root: Path) -> None:
+    """Neighbours must be consecutive frames of the orbit: frames 0..n-1 of its frame count, none missing."""
+    indices = [r["index"] for r in ds.rows]
+    wanted = int(ds.info.get("count_requested", len(indices)))
+    missing = sorted(set(range(wanted)) - set(indices))
+    if missing or indices != list(range(len(indices))):
+        shown = ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else "")
+        raise ValueError(f"{option} {root}: frames {shown or 'beyond the orbit'} missing or out of order "
+                         f"({len(indices)} of {wanted}); rerun its `iae-gen turntable` to finish the path")
+
+
 @torch.no_grad()
 def measure_flicker(run_dir: Path, path: Path, intrinsics: Path | None = None, device: str = "cpu") -> dict:
     """R's and Cycles' frame-to-frame change on a PBR turntable set, at R's training size.
@@ -85,6 +96,7 @@ def measure_flicker(run_dir: Path, path: Path, intrinsics: Path | None = None, d
     if not path_recipe.get("orbit"):  # random views: their ratios would mean nothing
         raise ValueError(f"--path {path}: not a camera path (made by `iae-gen pbr`, not `iae-gen turntable --pbr`); "
                          "flicker compares consecutive frames of one orbit")
+    _check_consecutive(cycles_set.ds, "--path", path)
     data = IntrinsicsData(intrinsics or path, h, w)
     theirs = data.ds.info.get("recipe") or {}
     background = theirs.get("background", "black")
@@ -94,6 +106,7 @@ def measure_flicker(run_dir: Path, path: Path, intrinsics: Path | None = None, d
             what = ", ".join(differ) if differ else f"{len(data)} frames against {len(cycles_set)}"
             raise ValueError(f"--intrinsics {intrinsics}: not the camera path of --path {path} ({what} differ); "
                              "make it with the same `iae-gen turntable` options")
+        _check_consecutive(data.ds, "--intrinsics", intrinsics)
     trained = _trained_background(run_dir)
     if trained is not None and trained != background:
         raise ValueError(f"--run {run_dir} was trained on intrinsics with the {trained!r} background, but R would "

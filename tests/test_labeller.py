@@ -3,6 +3,7 @@ and the CLI on a real model when ../shared/assets is there."""
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -146,6 +147,15 @@ def test_label_parts_cli_on_a_kenney_model_and_auto_rules_render(tmp_path):
     again = subprocess.run(cli + ["label-parts", str(model), "--out", str(tmp_path / "sedan.toml")],
                            capture_output=True, text=True, cwd=ROOT)
     assert again.returncode != 0 and "--force" in again.stderr
+    # outputs that would overwrite each other are refused before any work
+    same = subprocess.run(cli + ["label-parts", str(model), "--out", str(tmp_path / "x.toml"), "--preview",
+                                 str(tmp_path / "x.toml")], capture_output=True, text=True, cwd=ROOT)
+    assert same.returncode != 0 and "the same file as --out" in same.stderr and not (tmp_path / "x.toml").exists()
+    (tmp_path / "other").mkdir()
+    shutil.copy(model, tmp_path / "other" / "sedan.glb")
+    twins = subprocess.run(cli + ["label-parts", str(model), str(tmp_path / "other" / "sedan.glb"), "--out",
+                                  str(tmp_path / "rules")], capture_output=True, text=True, cwd=ROOT)
+    assert twins.returncode != 0 and "both would write" in twins.stderr and not (tmp_path / "rules").exists()
     # --car-rules auto: the same inference inside a dataset
     gen = subprocess.run(cli + ["intrinsics", "--out", str(tmp_path / "ds"), "--count", "1", "--resolution", "64x32",
                                 "--cars", str(model), "--car-rules", "auto", "--quiet"], capture_output=True, text=True,

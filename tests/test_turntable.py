@@ -171,6 +171,15 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(paths / "pbr"),
                     "--intrinsics", str(paths / "pbr"), "--out", str(again)], cwd=ROOT, check=True, capture_output=True)
     assert json.loads(again.read_text())[0]["renderer"] == json.loads(out.read_text())[0]["renderer"]
+    # a frame missing from the path: frames 1 and 3 are no neighbours, so the path is refused
+    gap = tmp_path / "gap"
+    shutil.copytree(paths / "pbr", gap)
+    rows = [json.loads(line) for line in (gap / "manifest.jsonl").read_text().splitlines()]
+    (gap / rows[2]["file"]).unlink()
+    (gap / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for k, r in enumerate(rows) if k != 2))
+    bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(gap)],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 1 and "--path" in bad.stderr and "frames 2 missing" in bad.stderr, bad.stderr
 
 
 def test_one_ctrl_c_during_a_cycles_render_stops_cleanly_and_resumes(tmp_path):

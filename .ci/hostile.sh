@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 19's hostile list, rerun by hand through the command lines (not part of `make test`, whose
+# Hostile inputs, rerun by hand through the command lines (not part of `make test`, whose
 # tests cover each case one by one): every case prints PASS or FAIL and a summary closes the run.
-# Usage (from a checkout with its virtual environment made by `make`):  bash .ci/hostile_19.sh [WORKDIR]
+# Usage (from a checkout with its virtual environment made by `make`):  bash .ci/hostile.sh [WORKDIR]
 set -u
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 W=${1:-$(mktemp -d /tmp/hostile19.XXXX)}
@@ -177,6 +177,41 @@ cp -r "$W/intr" "$W/bad"
 cp "$W/bad/samples/000000.exr" "$W/bad/samples/000001.exr"
 case_ "14 a sample copied over another is caught by render" "1|2" "000001|checksum" -- \
   iae-train render --run "$W/run" --intrinsics "$W/bad" --out "$W/f3"
+
+echo "== third pass: one checkpoint, one set, no output over an input"
+cp "$W/run/checkpoints/$(ls "$W/run/checkpoints" | grep safetensors | tail -1)" "$W/ckpt_backup"
+case_ "5 diagnose --json over the newest checkpoint" 1 "inside the run folder" -- \
+  iae-train diagnose --run "$W/run" --probe "$W/pbr_eval" --json "$W/run/checkpoints/$(ls "$W/run/checkpoints" | grep safetensors | tail -1)" --force
+check "5 ... and the checkpoint is intact" cmp -s "$W/ckpt_backup" "$W/run/checkpoints/$(ls "$W/run/checkpoints" | grep safetensors | tail -1)"
+case_ "5 flicker --out over a dataset's dataset.json" 1 "inside the dataset folder" -- \
+  iae-eval flicker --run "$W/run" --path "$W/pbr" --out "$W/pbr/dataset.json"
+echo '{"runs": []}' > "$W/results_mine.json"
+case_ "5 seeds --out over an existing file" 1 "exists; choose a new file or pass --force" -- \
+  iae-eval seeds "$W/results_mine.json" --out "$W/results_mine.json"
+case_ "13 diagnose --checkpoint of another run" 1 "not a checkpoint of --run" -- \
+  iae-train diagnose --run "$W/run" --probe "$W/pbr_eval" --checkpoint "$W/ckpt_backup"
+cp -r "$W/intr" "$W/intr_short"
+"$PY" - "$W/intr_short/dataset.json" <<'PYEOF'
+import json, sys
+p = sys.argv[1]; d = json.load(open(p)); d["count_requested"] = d["count"] + 4; d["complete"] = False
+json.dump(d, open(p, "w"))
+PYEOF
+case_ "6 fit on an incomplete set" 1 "incomplete \(8 of 12 samples\)" -- \
+  iae-train fit --config cpu-small --intrinsics "$W/intr_short" --real "$W/pbr" --run-dir "$W/run6" --max-steps 1 --quiet "${TINY[@]}"
+check "6 ... and no run folder" test ! -e "$W/run6"
+cp -r "$W/intr" "$W/intr_grow"
+iae-train fit --config cpu-small --intrinsics "$W/intr_grow" --real "$W/pbr" --run-dir "$W/run6b" --max-steps 1 --quiet "${TINY[@]}" >/dev/null
+iae-gen intrinsics --out "$W/intr_grow" --count 12 --resolution 64x32 --seed 3 --quiet >/dev/null
+case_ "6 a resume after the set grew from 8 to 12" 1 "changed since .*8 -> 12 samples" -- \
+  iae-train fit --run-dir "$W/run6b" --max-steps 2 --quiet
+case_ "6 ... accepted explicitly, and recorded" 0 "step 2" -- \
+  iae-train fit --run-dir "$W/run6b" --max-steps 2 --quiet --accept-changed-data
+check "6 ... the change is in the run's options" grep -q data_changes "$W/run6b/training_options.json"
+mkdir -p "$W/objcar"
+printf 'newmtl body\nKd 0.8 0.1 0.1\n' > "$W/objcar/car.mtl"
+printf 'mtllib car.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl body\nf 1 2 3\n' > "$W/objcar/car.obj"
+case_ "1 a recipe names the .mtl its OBJ reads" 0 "car.mtl" -- \
+  "$PY" -c "from blender_gen.recipe import Recipe; print(Recipe(kind='intrinsics', seed=0, width=64, height=32, cars=('$W/objcar/car.obj',)).identity()['cars'])"
 
 echo "== summary: $pass passed, $fail failed"
 [ "$fail" = 0 ]
