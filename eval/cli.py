@@ -175,7 +175,7 @@ def seeds(reports, out, force) -> None:
               help="Inputs per grid.")
 @click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
 def merge(parts, out, grids, grid_rows, force) -> None:
-    """Join reports of disjoint runs of one seed (e.g. made in different sessions) into one
+    """Join reports of disjoint runs of one seed (e.g. trained at different times) into one
     results.json for `iae-eval seeds`. PARTS: report folders or their results.json; they must have
     been evaluated on the same sets."""
     from blender_gen.dataset import atomic_write_json, save_png

@@ -1,9 +1,9 @@
 """Several seeds of one comparison side by side: per-model tables with every seed's figure and
 the paper's orderings, each said to hold on all seeds, on some, or on none.
 
-A seed's comparison may come in parts (`merge`): on a 2-core machine its ten runs take longer than
-one session, so each session reports the runs it finished and the parts are joined afterwards,
-provided they were evaluated on the same sets.
+A seed's comparison may come in parts (`merge`): on a 2-core machine its ten runs take many hours,
+so each part reports the runs it finished and the parts are joined afterwards, provided they were
+evaluated on the same sets.
 
 Input: the `results.json` of `iae-eval report` (or of `reproduce`, `OUT/report/`) per seed, for the
 same models. Single runs here move by several degrees between evaluations, so an ordering is only
@@ -107,7 +107,7 @@ def load(paths: list[Path]) -> tuple[list[str], dict[str, Seeded]]:
 
 
 # What must agree between the parts of one seed: every field of the evaluation sets but where
-# they lay (each session had its own output folder)
+# they lay (each part may have its own output folder)
 # (results written before sets recorded their resolution and content digest have neither: None on both sides agrees)
 _SET_FIELDS = ("kind", "count", "seed", "cars", "envmaps", "resolution", "content_sha256")
 _SET_ROLES = ("--data", "--real", "--intrinsics")
