@@ -112,7 +112,7 @@ def _common_options(fn):
         click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel."),
         click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
                      help="Blender processes rendering in parallel."),
-        click.option("--shard", default=None, help="I/N: render only samples with index %% N == I (batch schedulers)."),
+        click.option("--shard", default=None, help="I/N: render only samples with index % N == I (batch schedulers)."),
         click.option("--radius-min", default=CameraRanges.radius_min, show_default=True, type=float,
                      help="Minimum horizontal camera distance from the car centre (m)."),
         click.option("--radius-max", default=CameraRanges.radius_max, show_default=True, type=float,
@@ -184,6 +184,7 @@ def _run(recipe: Recipe, o: dict) -> None:
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="intrinsic-autoencoders")
 def main() -> None:
     """Synthetic data for the Intrinsic Autoencoder: intrinsics and Cycles PBR datasets."""
 

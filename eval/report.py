@@ -553,6 +553,6 @@ are R's renders of intrinsics the runs never saw.</p>
 {table(*_datasets_table(datasets))}
 <h2>Training losses</h2>
 {curves}
-<p id="selfcheck">not loaded</p>
+<p id="selfcheck" hidden>not loaded</p>
 </body></html>
 """

@@ -59,10 +59,10 @@ BUDGETS = {
     "cpu": Budget("256x128", (64, 128), 2000, 400, 48, 200, 5000, "cpu-small", decay_start=3333, rate=1.28,
                   cyclegan=("cyclegan.ngf=16", "cyclegan.n_blocks=4", "cyclegan.ndf=16"),
                   munit=("munit.dim=16", "munit.n_res=2", "munit.mlp_dim=64", "munit.d_ndf=16"),
-                  note="64x128, narrow networks (cpu-small widths)"),
+                  note="training at 128x64 (width x height), narrow networks (cpu-small widths)"),
     # the paper's resolution and widths for one lent GPU session: a fraction of the paper's schedule
     "gpu": Budget("512x256", (256, 512), 20000, 4000, 500, 2048, 20000, "paper", batch=1, pbr_samples=8,
-                  decay_start=10000, rate=8.0, note="256x512, the paper's widths, a tenth of its schedule"),
+                  decay_start=10000, rate=8.0, note="training at 512x256, the paper's widths, a tenth of its schedule"),
     # the paper's setting: 20,000 intrinsics, 200k steps per run (days on one GPU per run)
     "paper": Budget("512x256", (256, 512), 20000, 16000, 500, 2048, 200000, "paper", batch=1, pbr_samples=8,
                     rate=8.0, note="the paper's data sizes and a pix2pixHD-length schedule"),

@@ -47,7 +47,7 @@ class SanityBudget:
 
 SANITY_BUDGETS = {
     "sanity": SanityBudget("128x64", (32, 64), 800, 240, 48, 3000, (0, 1, 2),
-                           note="32x64, cpu-small widths, 3 seeds per setting (docs/experiment_log.md: Making it learn)"),
+                           note="training at 64x32, cpu-small widths, 3 seeds per setting (docs/experiment_log.md: Making it learn)"),
     "sanity-smoke": SanityBudget("128x64", (32, 64), 16, 8, 4, 6, (0,), pbr_samples=1,
                                  widths=("model.r_ngf=8", "model.r_downsample=2", "model.r_blocks=1", "model.h_ngf=8",
                                          "model.h_blocks=1", "model.d_ndf=8"),

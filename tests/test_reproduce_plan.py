@@ -131,3 +131,19 @@ def test_a_part_with_other_counts_refuses_the_shared_data_folder(tmp_path):
                            "--out", str(tmp_path / "part2"), "--intrinsics", "64", "--runs", "no_A", "--dry-run"],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 1 and "was made with 32 samples" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_resolution_is_width_by_height_everywhere_and_the_swapped_order_is_refused():
+    from click.testing import CliRunner
+
+    from eval.cli import main
+
+    swapped = CliRunner().invoke(main, ["reproduce", "--budget", "smoke", "--resolution", "32x64", "--dry-run"])
+    assert swapped.exit_code == 2 and "taller than wide; did you mean 64x32?" in swapped.output
+    ok = CliRunner().invoke(main, ["reproduce", "--budget", "smoke", "--resolution", "64x32", "--runs", "full",
+                                   "--out", "unused_plan", "--dry-run"])
+    assert ok.exit_code == 0, ok.output
+    assert "steps each at 64x32 (width x height)" in ok.output
+    for cli in ("blender_gen.cli", "train.cli", "eval.cli"):
+        v = subprocess.run([sys.executable, "-m", cli, "--version"], capture_output=True, text=True, cwd=ROOT)
+        assert v.returncode == 0 and "version 0.1.0" in v.stdout

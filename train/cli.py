@@ -21,6 +21,7 @@ def _device(name: str) -> str:
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="intrinsic-autoencoders")
 def main() -> None:
     """Intrinsic Autoencoder training and inference."""
 
