@@ -133,12 +133,19 @@ def render(run_dir, intrinsics, out, style_seed, limit, device, video, side_by_s
 @click.option("--device", default="auto", show_default=True)
 @click.option("--quiet", is_flag=True)
 def decompose(run_dir, images, out, limit, device, quiet) -> None:
-    """Apply H to images: predicted normal/albedo/reflection as an EXR dataset plus PNG previews."""
+    """Apply H to photos or a PBR dataset: normal, albedo and reflection.
+
+    Photos: H sees each whole photo (aspect kept); OUT/photos/ holds NAME_normal/_albedo/
+    _reflection/_render.png at the photo's size and a labelled panel NAME.png per photo
+    (index.html shows them all). An unreadable photo is skipped and named (exit status 1); the
+    others are written. Always: an EXR predictions dataset at the training size (the PBR set's
+    resolution for a PBR set, which `iae-eval decomposition` scores)."""
     from .inference import decompose_images
 
     with one_line_errors():
         path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet)
-    click.echo(f"{path}: predictions written")
+    gallery = path / "photos" / "index.html"
+    click.echo(f"{path}: predictions written" + (f"; open {gallery}" if gallery.exists() else ""))
 
 
 @main.command()

@@ -131,11 +131,67 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
     out = fresh_output(out)
     try:
         return _decompose_into(out, run_dir, images, cfg, model, step, reals, n, device, batch, limit, progress)
+    except PhotosSkipped:  # the readable photos are written and complete; the error names the others
+        raise
     except BaseException:  # a bad image mid-way: no half-written predictions that look like a result
         import shutil
 
         shutil.rmtree(out, ignore_errors=True)
         raise
+
+
+@torch.no_grad()
+def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model, reals, n: int, device: str,
+                      progress: bool) -> Path:
+    """Photos one by one (their sizes differ): H on the whole photo, aspect kept (train.photos); the
+    dataset's EXR sample is the training-size centre crop of those maps (what the dataset format
+    and the scorer read); photos/ holds the maps at the photo's size, named after it, and a
+    labelled panel per photo. An unreadable photo is skipped and named; the others go on."""
+    from .data import cover_crop
+    from .photos import network_size, photo_name, write_gallery, write_photo_outputs
+
+    gallery = out / "photos"
+    gallery.mkdir()
+    done, skipped = [], []
+    for i in tqdm(range(n), desc="decompose", unit="photo", disable=not progress):
+        path = reals.files[i]
+        try:
+            photo = torch.from_numpy(reals.load_photo(path)).permute(2, 0, 1).contiguous().float()
+        except DatasetError as exc:
+            skipped.append({"file": str(path), "reason": str(exc)})
+            tqdm.write(f"skipped: {exc}", file=sys.stderr)
+            continue
+        hn, wn = network_size(*photo.shape[-2:], cfg.data.height, cfg.data.width)
+        img = F.interpolate(photo[None], size=(hn, wn), mode="area" if hn <= photo.shape[1] else "bilinear",
+                            **({} if hn <= photo.shape[1] else {"align_corners": False})).to(device)
+        maps = model.decompose(img).float()
+        rerender = model.reconstruct(img, maps) if hasattr(model, "reconstruct") else model.render(maps)
+        name = photo_name(path, Path(images))
+        write_photo_outputs(gallery, name, photo, maps[0].cpu(), rerender[0].cpu())
+        crop = cover_crop(F.interpolate(maps, size=photo.shape[-2:], mode="bilinear", align_corners=False)[0],
+                          cfg.data.height, cfg.data.width)
+        arr = crop.permute(1, 2, 0).cpu().numpy()
+        layers = {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(INTRINSIC_LAYERS)}
+        save_png(out / "previews" / f"{i:06d}.png",
+                 np.concatenate([preview_srgb8(k, layers[k]) for k in INTRINSIC_LAYERS], axis=1))
+        writer.add(i, layers, source=reals.source_name(i), photo=name)
+        done.append((name, str(Path(path).relative_to(images) if Path(images).is_dir() else Path(path).name)))
+    write_gallery(gallery, done, f"H's decompositions of {Path(images).name}")
+    writer.info.update(skipped=skipped, count_requested=n - len(skipped))
+    writer.finish()
+    if skipped:
+        raise PhotosSkipped(out, skipped, len(done))
+    return out
+
+
+class PhotosSkipped(DatasetError):
+    """Some photos could not be read: the others are decomposed and written; this names the rest."""
+
+    def __init__(self, out: Path, skipped: list[dict], done: int):
+        self.out, self.skipped, self.done = out, skipped, done
+        names = ", ".join(Path(s["file"]).name for s in skipped[:3]) + (" ..." if len(skipped) > 3 else "")
+        super().__init__(f"{len(skipped)} photo(s) could not be read and were skipped ({names}); the other {done} "
+                         f"are in {out}")
 
 
 @torch.no_grad()
@@ -154,6 +210,8 @@ def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: in
         "weights": getattr(model, "weights", "raw"), "layers": list(INTRINSIC_LAYERS),
         # H is fully convolutional but runs at the size it trained at; its maps are resized back
         "network_size": [cfg.data.width, cfg.data.height]})
+    if reals.ds is None:
+        return _decompose_photos(out, writer, images, cfg, model, reals, n, device, progress)
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         img = torch.stack([reals[(i, False)] for i in idx]).to(device)

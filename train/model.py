@@ -93,6 +93,13 @@ class IntrinsicAutoencoder(nn.Module):
     def decompose(self, img: torch.Tensor) -> torch.Tensor:
         return self.H(img)
 
+    def reconstruct(self, img: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
+        """R(H(img)) as in the decomposition cycle: `maps` = H(img), lit as the image is (the
+        shader's per-image lighting fit) where the renderer has one."""
+        if self.shader and self.R.bank is not None:
+            return self.R(maps, self.real_lighting(img, maps)[0])
+        return self.render(maps)
+
     # -------------------------------------------------------------- training
     def forward_all(self, m_s: torch.Tensor, i_r: torch.Tensor, everything: bool = False) -> dict[str, torch.Tensor]:
         """The outputs the losses need; `everything` also computes those an ablation does not

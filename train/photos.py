@@ -1,0 +1,94 @@
+"""Decompositions of a user's photos as people look at them: the whole photo (no crop), each map at
+the photo's own size and named after it, and one labelled panel per photo with the input beside
+H's maps and R's re-render of them.
+
+H is fully convolutional, so it runs on the whole photo resized to about the pixel count it was
+trained at, aspect ratio kept (sides rounded to a multiple of SIDE_MULTIPLE, which every
+downsampling depth of the presets divides); its maps are then resized to the photo's size.
+"""
+from __future__ import annotations
+
+import html
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image, ImageDraw
+
+from blender_gen.dataset import save_png
+
+SIDE_MULTIPLE = 16
+MAX_SIDE = 2048  # outputs larger than this are scaled down (a 24-megapixel photo's maps are not needed)
+PANEL_HEIGHT = 256
+PANEL_LABELS = ("photo", "normal (H)", "albedo (H)", "reflection (H)", "R(H(photo))")
+
+
+def network_size(h: int, w: int, train_h: int, train_w: int) -> tuple[int, int]:
+    """(height, width) with about train_h * train_w pixels and the aspect ratio of h x w."""
+    scale = (train_h * train_w / (h * w)) ** 0.5
+    return (max(SIDE_MULTIPLE, round(h * scale / SIDE_MULTIPLE) * SIDE_MULTIPLE),
+            max(SIDE_MULTIPLE, round(w * scale / SIDE_MULTIPLE) * SIDE_MULTIPLE))
+
+
+def output_size(h: int, w: int) -> tuple[int, int]:
+    scale = min(1.0, MAX_SIDE / max(h, w))
+    return max(1, round(h * scale)), max(1, round(w * scale))
+
+
+def photo_name(path: Path, root: Path) -> str:
+    """A file-name-safe name for a photo, unique within its folder tree (sub/car.jpg -> sub__car)."""
+    rel = Path(path).relative_to(root) if Path(root).is_dir() else Path(Path(path).name)
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", "__".join(rel.with_suffix("").parts))
+
+
+def resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """(N, C, H, W) -> (N, C, h, w): area averaging when shrinking, bilinear when growing."""
+    if t.shape[-2:] == (h, w):
+        return t
+    if h <= t.shape[-2] and w <= t.shape[-1]:
+        return F.interpolate(t, size=(h, w), mode="area")
+    return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False)
+
+
+def display(t: torch.Tensor) -> np.ndarray:
+    """(3, H, W) network space -> uint8 HxWx3 (normals and sRGB both map [-1, 1] to [0, 1])."""
+    x = ((t.detach().float().clamp(-1, 1) + 1.0) * 0.5).permute(1, 2, 0).cpu().numpy()
+    return (x * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, maps: torch.Tensor,
+                        rerender: torch.Tensor) -> Path:
+    """NAME_normal/_albedo/_reflection/_render.png at the photo's size (at most MAX_SIDE) and the
+    labelled panel NAME.png. `photo` (3, H, W), `maps` (9, h, w), `rerender` (3, h, w), network space."""
+    h, w = output_size(*photo.shape[-2:])
+    full = resize(maps[None].float(), h, w)[0]
+    full[0:3] = F.normalize(full[0:3], dim=0)  # interpolated normals are shorter than unit length
+    tiles = {"normal": full[0:3], "albedo": full[3:6], "reflection": full[6:9],
+             "render": resize(rerender[None].float(), h, w)[0]}
+    for key, t in tiles.items():
+        save_png(folder / f"{name}_{key}.png", display(t))
+    ph = PANEL_HEIGHT
+    pw = max(1, round(w * ph / h))
+    pictures = [resize(photo[None].float(), ph, pw)[0]] + [resize(t[None], ph, pw)[0] for t in tiles.values()]
+    sheet = Image.new("RGB", (pw * len(pictures), 18 + ph), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for c, (label, t) in enumerate(zip(PANEL_LABELS, pictures)):
+        draw.text((c * pw + 4, 3), label, fill=(0, 0, 0))
+        sheet.paste(Image.fromarray(display(t)), (c * pw, 18))
+    panel = folder / f"{name}.png"
+    save_png(panel, np.asarray(sheet))
+    return panel
+
+
+def write_gallery(folder: Path, entries: list[tuple[str, str]], title: str) -> Path:
+    """index.html: every photo's panel with its source file name (entries: (name, source))."""
+    rows = "\n".join(f'<figure><img src="{html.escape(n)}.png" alt="{html.escape(s)}"><figcaption>'
+                     f'{html.escape(s)}</figcaption></figure>' for n, s in entries)
+    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>"
+            "body{font-family:sans-serif;margin:16px} img{max-width:100%} figure{margin:0 0 18px}"
+            f"</style></head><body><h1>{html.escape(title)}</h1>\n{rows}\n</body></html>\n")
+    path = folder / "index.html"
+    path.write_text(page, encoding="utf-8")
+    return path
