@@ -277,3 +277,40 @@ def test_gap_closed_starts_from_the_stronger_bar_per_column():
     worse_oracle = entries[:2] + [{"label": "Supervised oracle (paired PBR)", "dec": dec(60, 22, 24)}]
     assert _gap_closed(dec(26, 46, 32), worse_oracle).startswith("- / ")
 
+
+
+def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_reflection_map():
+    """With a gain fitted per image, maps that put the whole image into the reflection layer (no
+    albedo) explain it exactly; with the gain shared at the data's value they cannot, while the
+    true maps still fit. The shared gain is learned (log space) and reaches the renderer's output."""
+    from train.sanity import srgb_encode
+    from train.shading import fit_lighting
+
+    stacks, masks = _blobs(3)
+    light = torch.zeros(3, 9)
+    light[:, 0], light[:, 3] = 2.5, 0.8
+    true_gain = torch.full((3,), 0.15)
+    image = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], light, true_gain)) * 2 - 1
+    copy = stacks.clone()
+    copy[:, 3:6] = -1.0  # black albedo
+    copy[:, 6:9] = torch.where(masks > 0, image, copy[:, 6:9])  # the image as its reflection map
+    n, a, f = (lambda s: (s[:, 0:3], s[:, 3:6], s[:, 6:9]))(copy)
+    fitted_res, fitted = fit_shading(image, n, a, f, masks)
+    shared_res, shared = fit_shading(image, n, a, f, masks, gain=true_gain)
+    truth_res, _ = fit_shading(image, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], masks, gain=true_gain)
+    assert fitted_res.max() < 0.01 and shared_res.min() > 0.5 and truth_res.max() < 0.05
+    assert torch.allclose(shared[:, 9], torch.full((3,), float((torch.tensor([0.2126, 0.7152, 0.0722]) * 0.15).sum())))
+    light_fit, gain = fit_lighting(image, stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], masks, gain=true_gain)
+    assert gain.shape == (3, 3) and torch.allclose(gain, true_gain.expand(3, 3))
+    again = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], light_fit, gain)) * 2 - 1
+    assert (again - image).abs()[masks.expand(-1, 3, -1, -1) > 0].mean() < 0.02
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.shader_gain=shared", "model.shader_gain_start=0.2"])
+    model = build_model(cfg)
+    assert torch.allclose(model.R.shared_gain(), torch.full((3,), 0.2))
+    out = model.R(stacks)
+    out.mean().backward()
+    assert model.R.log_gain.grad is not None and model.R.log_gain.grad.abs().sum() > 0
+    plain = build_model(load_config("cpu-small", tiny_overrides()))
+    assert plain.R.shared_gain() is None and "R.log_gain" not in plain.state_dict()  # older checkpoints still load
+    with pytest.raises(ConfigError, match="model.shader_gain_start"):
+        load_config("cpu-small", tiny_overrides() + ["model.shader_gain_start=nan"])

@@ -65,7 +65,8 @@ class IntrinsicAutoencoder(nn.Module):
         if self.shader:
             self.R = ShaderRenderer(self.inputs, m.r_ngf, m.r_downsample, m.r_blocks, m.r_local_enhancers, m.norm,
                                     m.shader_residual, m.shader_residual_on,
-                                    m.lighting_bank if m.shader_lighting == "per_image" else 0)
+                                    m.lighting_bank if m.shader_lighting == "per_image" else 0,
+                                    m.shader_gain_start if m.shader_gain == "shared" else 0.0)
         else:
             self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks,
                                        m.r_local_enhancers, m.norm)
@@ -128,7 +129,8 @@ class IntrinsicAutoencoder(nn.Module):
         H's object mask, and (n,) whether each was fitted: an image where H finds (almost) no object
         gets the default lighting instead."""
         mask = object_mask(fake_m)
-        light, gain = fit_lighting(i_r, fake_m[:, 0:3], fake_m[:, 3:6], fake_m[:, 6:9], mask)
+        light, gain = fit_lighting(i_r, fake_m[:, 0:3], fake_m[:, 3:6], fake_m[:, 6:9], mask,
+                                   gain=self.R.shared_gain())
         fitted = torch.cat([light, gain.unsqueeze(-1)], dim=-1).clamp(-10, 10)
         d_light, d_gain = self.R.default_lighting()
         default = torch.cat([d_light, d_gain.unsqueeze(-1)], dim=-1).expand_as(fitted)
@@ -179,11 +181,11 @@ class IntrinsicAutoencoder(nn.Module):
         if lc.w_shading_ren and "fake_I" in out:  # R shades by the normals it is given
             m = out["M_s"]
             terms["G/shading_ren"] = (lc.w_shading_ren, shading_loss(out["fake_I"], m[:, 0:3], m[:, 3:6], m[:, 6:9],
-                                                                     object_mask(m)))
+                                                                     object_mask(m), gain=self._gain()))
         if lc.w_shading_dec and "fake_M" in out:  # H's normals explain the real image's shading
             h = out["fake_M"]
             terms["G/shading_dec"] = (lc.w_shading_dec, shading_loss(out["I_r"], h[:, 0:3], h[:, 3:6], h[:, 6:9],
-                                                                     object_mask(h.detach())))
+                                                                     object_mask(h.detach()), gain=self._gain()))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))
@@ -194,6 +196,10 @@ class IntrinsicAutoencoder(nn.Module):
                 w = lc.w_adv * (lc.w_adv_m if dname == "D_M" else 1.0) * rel[k] / norm
                 terms[f"G/adv_{dname}_{f}"] = (w, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
         return terms
+
+    def _gain(self) -> torch.Tensor | None:
+        """The shared reflection gain the shading fits hold fixed (model.shader_gain), else None."""
+        return self.R.shared_gain() if self.shader else None
 
     def _adv_weights(self, fakes: list[str]) -> list[float]:
         """Relative generator weights of one discriminator's fakes: the cycle reconstructions at

@@ -5,12 +5,18 @@ Written here (no torchvision): they are a few conv blocks. Layouts follow pix2pi
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from .sanity import srgb_encode
 from .shading import _C0, _C1, render_sh
+
+# Adam moves a parameter by about lr per step; the shared gain's log moves this many times faster
+# (an equalised learning rate, as StyleGAN's), so it can travel from its start to the data's in a run
+GAIN_LR_SCALE = 10.0
 
 # where each intrinsic map sits in a 9-channel stack
 CHANNELS = {"N": slice(0, 3), "A": slice(3, 6), "F": slice(6, 9)}
@@ -192,7 +198,7 @@ class ShaderRenderer(nn.Module):
     no information: a camera-facing normal, mid-grey albedo, no reflection."""
 
     def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
-                 residual: float, residual_on: str = "background", bank: int = 0):
+                 residual: float, residual_on: str = "background", bank: int = 0, shared_gain: float = 0.0):
         super().__init__()
         self.inputs = inputs
         self.residual = residual
@@ -208,6 +214,13 @@ class ShaderRenderer(nn.Module):
         self.light = nn.Parameter(light)
         self.gain = nn.Parameter(torch.full((3,), 0.5))
         self.net = make_renderer_net(3 * len(inputs) + 3, ngf, n_down, n_blocks, local, norm) if residual > 0 else None
+        # one reflection gain per colour channel for every image (model.shader_gain = "shared"), learned
+        # in log space with a GAIN_LR_SCALE times larger step; absent (not a weight) when gains are fitted
+        self.log_gain = nn.Parameter(torch.full((3,), math.log(shared_gain) / GAIN_LR_SCALE)) if shared_gain else None
+
+    def shared_gain(self) -> torch.Tensor | None:
+        """(3,) the shared reflection gain, or None where each lighting carries its own."""
+        return None if self.log_gain is None else torch.exp(GAIN_LR_SCALE * self.log_gain)
 
     @torch.no_grad()
     def push(self, lighting: torch.Tensor) -> None:
@@ -245,6 +258,8 @@ class ShaderRenderer(nn.Module):
         if "F" not in self.inputs:
             f = torch.full_like(f, -1.0)
         light, gain = (lighting[..., :9], lighting[..., 9]) if lighting is not None else self.default_lighting()
+        if self.log_gain is not None:
+            gain = self.shared_gain()
         base = srgb_encode(render_sh(n, a, f, light, gain)) * 2 - 1
         if self.net is None:
             return base

@@ -62,19 +62,26 @@ def _ridge_solve(x: torch.Tensor, w: torch.Tensor, y: torch.Tensor, ridge: float
 
 
 def fit_shading(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, reflection: torch.Tensor,
-                mask: torch.Tensor, ridge: float = 1e-3, min_pixels: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+                mask: torch.Tensor, ridge: float = 1e-3, min_pixels: int = 16,
+                gain: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image, the least-squares lighting (9 SH coefficients and a reflection gain) that explains
     lum(image) from the maps on `mask` (n, 1, h, w); returns (residual, coefficients).
 
     residual: (n,) mean |fit - lum(image)| over the mask divided by the mean luminance there (0 for an
     image with fewer than `min_pixels` mask pixels: nothing to fit); coefficients: (n, 10). The
     solve is differentiable, so a loss on the residual moves the maps (and the image), not only the
-    lighting (`_ridge_solve`).
+    lighting (`_ridge_solve`). `gain` (3,): a reflection gain fixed for every image (its luminance
+    is used) instead of one fitted per image; only the 9 SH coefficients are then fitted.
     """
     w = mask.float().flatten(2)  # (n, 1, p)
     x = shading_design(normals, albedo, reflection).flatten(2)  # (n, 10, p)
     y = luminance(linear(image)).flatten(2)  # (n, 1, p)
-    coeffs = _ridge_solve(x, w, y, ridge)  # (n, 10, 1)
+    if gain is None:
+        coeffs = _ridge_solve(x, w, y, ridge)  # (n, 10, 1)
+    else:
+        g = luminance(gain.float().view(1, 3, 1, 1)).view(1, 1, 1).expand(len(x), 1, 1)
+        sh = _ridge_solve(x[:, :9], w, y - g * x[:, 9:], ridge)  # (n, 9, 1)
+        coeffs = torch.cat([sh, g], dim=1)
     fit = coeffs.transpose(1, 2) @ x  # (n, 1, p)
     count = w.sum(dim=(1, 2))
     res = ((fit - y).abs() * w).sum(dim=(1, 2)) / (y * w).sum(dim=(1, 2)).clamp_min(1e-3)
@@ -82,9 +89,9 @@ def fit_shading(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor
 
 
 def shading_loss(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, reflection: torch.Tensor,
-                 mask: torch.Tensor, ridge: float = 1e-3) -> torch.Tensor:
+                 mask: torch.Tensor, ridge: float = 1e-3, gain: torch.Tensor | None = None) -> torch.Tensor:
     """Mean relative shading residual (`fit_shading`) over the images that have an object."""
-    res, _ = fit_shading(image, normals, albedo, reflection, mask, ridge)
+    res, _ = fit_shading(image, normals, albedo, reflection, mask, ridge, gain=gain)
     has = (mask.flatten(1).sum(1) >= 16).float()
     return (res * has).sum() / has.sum().clamp_min(1.0)
 
@@ -105,15 +112,22 @@ def render_sh(normals: torch.Tensor, albedo: torch.Tensor, reflection: torch.Ten
 
 
 def fit_lighting(image: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor, reflection: torch.Tensor,
-                 mask: torch.Tensor, ridge: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+                 mask: torch.Tensor, ridge: float = 1e-3, gain: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per image and colour channel, the least-squares SH lighting and reflection gain that explain
     lin(image) from the maps on `mask`: returns ((n, 3, 9) lighting, (n, 3) gains), the form
-    `render_sh` takes. The same solve as `fit_shading`, one channel at a time."""
+    `render_sh` takes. The same solve as `fit_shading`, one channel at a time; `gain` (3,) fixes the
+    reflection gain (fitting only the lighting)."""
     n = F.normalize(normals.float(), dim=1, eps=1e-6)
     basis = sh_basis(n).flatten(2)  # (b, 9, p)
     a, f, y = linear(albedo).flatten(2), linear(reflection).flatten(2), linear(image).flatten(2)  # (b, 3, p)
     b, p = basis.shape[0], basis.shape[-1]
-    x = torch.cat([a.unsqueeze(2) * basis.unsqueeze(1), f.unsqueeze(2)], dim=2).reshape(b * 3, 10, p)
     w = mask.float().flatten(2).repeat_interleave(3, dim=0)  # (b * 3, 1, p)
+    if gain is not None:
+        g = gain.float().view(1, 3, 1)
+        x = (a.unsqueeze(2) * basis.unsqueeze(1)).reshape(b * 3, 9, p)
+        light = _ridge_solve(x, w, (y - g * f).reshape(b * 3, 1, p), ridge).reshape(b, 3, 9)
+        return light, g.view(1, 3).expand(b, 3)
+    x = torch.cat([a.unsqueeze(2) * basis.unsqueeze(1), f.unsqueeze(2)], dim=2).reshape(b * 3, 10, p)
     coeffs = _ridge_solve(x, w, y.reshape(b * 3, 1, p), ridge).reshape(b, 3, 10)
     return coeffs[..., :9], coeffs[..., 9]
