@@ -495,3 +495,29 @@ def test_training_refuses_a_set_being_written_or_incomplete_and_a_set_that_chang
     opts = json.loads((run / "training_options.json").read_text())
     assert opts["data_identity"]["intrinsics"]["count"] == 6
     assert opts["data_changes"][0]["step"] == 1 and opts["data_changes"][0]["was"]["intrinsics"]["count"] == 4
+
+
+def test_init_from_starts_a_new_run_from_another_runs_weights(data, tmp_path):
+    from safetensors.torch import load_file
+
+    intr, photos = data
+    source = tmp_path / "source"
+    fit(source, tiny_cfg(), str(intr), str(photos), max_steps=3, progress=False)
+    tuned = tmp_path / "tuned"
+    res = _run("fit", "--init-from", str(source), "--intrinsics", str(intr), "--real", str(photos), "--run-dir",
+               str(tuned), "--max-steps", "1", "--quiet", "--set", "optim.lr=1e-5")
+    assert res.returncode == 0, res.stderr
+    opts = json.loads((tuned / "training_options.json").read_text())
+    assert opts["init_from"]["step"] == 3 and opts["init_from"]["checkpoint"].endswith("step_00000003.safetensors")
+    assert opts["config"]["optim"]["lr"] == 1e-5 and opts["config"]["model"]["h_ngf"] == tiny_cfg().model.h_ngf
+    start = load_file(str(source / "checkpoints" / "step_00000003.safetensors"))
+    after = load_file(str(tuned / "checkpoints" / "step_00000001.safetensors"))
+    fresh = tmp_path / "fresh"
+    fit(fresh, tiny_cfg(**{"optim__lr": 1e-5, "run__seed": 5}), str(intr), str(photos), max_steps=1, progress=False)
+    scratch = load_file(str(fresh / "checkpoints" / "step_00000001.safetensors"))
+    key = next(k for k in start if k.startswith("model.H.") and k.endswith("weight") and start[k].dim() == 4)
+    assert (after[key] - start[key]).abs().max() < 1e-3 < (scratch[key] - start[key]).abs().max()
+    bad = _run("fit", "--init-from", str(source), "--intrinsics", str(intr), "--real", str(photos), "--run-dir",
+               str(tmp_path / "wider"), "--max-steps", "1", "--quiet", "--config", "cpu-small", *TINY,
+               "--set", "model.h_ngf=16", check=False)
+    assert bad.returncode == 1 and "do not fit this run's config" in bad.stderr and "Traceback" not in bad.stderr

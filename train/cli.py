@@ -41,8 +41,12 @@ def main() -> None:
 @click.option("--device", default="auto", show_default=True, help="cpu, cuda, cuda:N or auto.")
 @click.option("--accept-changed-data", is_flag=True,
               help="Resume although --intrinsics or --real changed since the run last trained (recorded in the run).")
+@click.option("--init-from", type=click.Path(file_okay=False), default=None,
+              help="A new run starts from this run's newest weights (fine-tuning, e.g. on your own data); "
+                   "its config is the default.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, accept_changed_data, quiet) -> None:
+def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, accept_changed_data, init_from,
+        quiet) -> None:
     """Train a model; under `torchrun --nproc_per_node K` it trains on K processes.
 
     Ctrl-C or SIGTERM saves a checkpoint after the current step; the same command resumes.
@@ -50,13 +54,21 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, 
     from .config import load_config
     from .loop import Interrupted, NonFiniteLoss, fit as run_fit
 
-    if overrides and not config:
-        raise click.UsageError("--set needs --config (a resumed run keeps its saved config)")
+    if overrides and not (config or init_from):
+        raise click.UsageError("--set needs --config or --init-from (a resumed run keeps its saved config)")
     try:
         with one_line_errors(EXPECTED + (NonFiniteLoss,)):
-            cfg = load_config(config, list(overrides)) if config else None
+            if config:
+                cfg = load_config(config, list(overrides))
+            elif init_from and overrides:  # the source run's config, changed where --set says
+                from .config import apply_overrides
+                from .inference import load_run_options
+
+                cfg = apply_overrides(load_run_options(Path(init_from))[1], list(overrides))
+            else:
+                cfg = None
             result = run_fit(run_dir, cfg, intrinsics, real, max_steps, _device(device), progress=not quiet,
-                             probe=probe, accept_changed_data=accept_changed_data)
+                             probe=probe, accept_changed_data=accept_changed_data, init_from=init_from)
     except Interrupted as exc:
         click.echo(f"{run_dir}: {exc}", err=True)
         sys.exit(128 + exc.signum)

@@ -403,6 +403,11 @@ def load_config(name_or_file: str, overrides: list[str] | None = None) -> Config
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     cfg = Config(name=path.stem)
     apply_dict(cfg, data, source=str(path))
+    return apply_overrides(cfg, overrides)
+
+
+def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
+    """`--set key=value` items applied to `cfg`, then the whole config validated."""
     for item in overrides or []:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected key=value")

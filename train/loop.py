@@ -22,7 +22,8 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
-from .checkpoint import latest_checkpoint, load_ema, load_newest, read_state, save_checkpoint
+from .checkpoint import (CheckpointError, checkpoint_files, latest_checkpoint, load_ema, load_newest, load_weights,
+                         read_state, save_checkpoint)
 from .config import Config, ConfigError, config_from_dict, unread_sections
 from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
                    set_identity)
@@ -147,7 +148,8 @@ def _resolve(flag: str, device: str) -> bool:
 
 
 def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None,
-                probe: str | None = None, accept_changed_data: bool = False) -> tuple[Config, dict]:
+                probe: str | None = None, accept_changed_data: bool = False,
+                init_from: str | None = None) -> tuple[Config, dict]:
     """New run: check the data, then write training_options.json. Existing run: read it (the run resumes).
 
     Everything is validated before the folder is written, so a failed start never leaves a
@@ -156,13 +158,25 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
 
     The run records its two sets' identities (count and content digest); a resume on a set that
     changed since is refused unless `accept_changed_data`, which records the change.
+
+    `init_from` (a new run only): another run whose newest checkpoint's weights start this one
+    (fine-tuning); its config is the default, and which checkpoint it was is recorded.
     """
+    source = _init_source(init_from) if init_from else None
+    if source is not None and cfg is None:
+        cfg = config_from_dict(source["config"])
     run = RunFolder(run_dir)
     if run.exists():
         opts = run.options()
         saved = config_from_dict(opts["config"])
         started = latest_checkpoint(run.checkpoints) is not None
         changed = cfg is not None and cfg.to_dict() != saved.to_dict()
+        if started and source is not None and source["checkpoint_sha256"] != (opts.get("init_from") or {}).get(
+                "checkpoint_sha256"):
+            raise ConfigError(f"--init-from {init_from}: the run in {run_dir} has started from other weights; "
+                              "a resume takes no --init-from")
+        if started and source is not None:
+            changed = False  # the source's config, given again by --init-from, is the run's own
         moved = [k for k, given in (("intrinsics", intrinsics), ("real", real))
                  if given and str(Path(given).resolve()) != opts[k]]
         if started or not (changed or moved):
@@ -205,10 +219,43 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
             "data_identity": {"intrinsics": set_identity(Path(intrinsics)), "real": set_identity(Path(real))}}
     if probe:
         opts["probe"] = str(Path(probe).resolve())
+    if source is not None:
+        opts["init_from"] = {k: source[k] for k in ("run", "checkpoint", "checkpoint_sha256", "step")}
     run_dir.mkdir(parents=True, exist_ok=True)
     run.stats_path.unlink(missing_ok=True)  # from a start that never reached a checkpoint
     atomic_write_json(run.options_path, opts)
     return cfg, opts
+
+
+def _init_source(init_from: str) -> dict:
+    """The run `init_from` names: its folder, config and newest readable checkpoint."""
+    from blender_gen.dataset import sha256_file
+
+    src = RunFolder(Path(init_from))
+    opts = src.options()  # NotARunError names the folder
+    for path in checkpoint_files(src.checkpoints):
+        try:
+            step = int(read_state(path)["step"])
+        except CheckpointError:
+            continue
+        return {"run": str(Path(init_from).resolve()), "config": opts["config"], "checkpoint": str(path.resolve()),
+                "checkpoint_sha256": sha256_file(path), "step": step}
+    raise ConfigError(f"--init-from {init_from}: no readable checkpoint to start from")
+
+
+def load_init(model: torch.nn.Module, ema: torch.nn.Module | None, init: dict) -> None:
+    """Start `model` (and its moving average) from the weights `init` names (opts["init_from"])."""
+    from blender_gen.dataset import sha256_file
+
+    path = Path(init["checkpoint"])
+    if not path.is_file() or sha256_file(path) != init["checkpoint_sha256"]:
+        raise ConfigError(f"--init-from: {path} is gone or changed since this run was set up; set it up again")
+    try:
+        load_weights(path, model)
+        if ema is not None and not load_ema(path, ema):
+            ema.load_state_dict(model.state_dict())
+    except CheckpointError as exc:
+        raise ConfigError(f"--init-from {init['run']}: its networks do not fit this run's config ({exc})") from None
 
 
 def _newest_step(run: RunFolder) -> int | None:
@@ -340,7 +387,7 @@ class StatsLog:
 
 def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None, real: str | None = None,
         max_steps: int | None = None, device: str = "cpu", progress: bool = True, probe: str | None = None,
-        accept_changed_data: bool = False) -> dict:
+        accept_changed_data: bool = False, init_from: str | None = None) -> dict:
     """Train (or resume) the run in `run_dir` up to `max_steps` (default: the config's).
 
     Ctrl-C or SIGTERM finishes the current step, saves a checkpoint and raises Interrupted.
@@ -353,7 +400,8 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     created = not run_dir.exists()
     try:
         with locked_folder(run_dir, "--run-dir"):
-            return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe, accept_changed_data)
+            return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe, accept_changed_data,
+                        init_from)
     except BaseException:
         if created and run_dir.is_dir() and folder_is_empty(run_dir):  # a refused start leaves no folder
             (run_dir / LOCK_NAME).unlink(missing_ok=True)
@@ -362,13 +410,14 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
 
 
 def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | None, max_steps: int | None,
-         device: str, progress: bool, probe: str | None, accept_changed_data: bool = False) -> dict:
+         device: str, progress: bool, probe: str | None, accept_changed_data: bool = False,
+         init_from: str | None = None) -> dict:
     dd = init_distributed(device)
     if device.startswith("cuda") and dd.world > 1:
         device = f"cuda:{dd.local_rank}"
         torch.cuda.set_device(dd.local_rank)
     if dd.main:
-        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real, probe, accept_changed_data)
+        cfg, opts = prepare_run(run_dir, cfg, intrinsics, real, probe, accept_changed_data, init_from)
     if dd.world > 1:
         dist.barrier()
         if not dd.main:
@@ -396,6 +445,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     ema = make_ema(model, cfg.run.ema_decay) if dd.main else None
     if ema is not None and resumed_from is not None:
         load_ema(resumed_from, ema)
+    if state is None and opts.get("init_from"):  # fine-tuning: another run's weights, this run's step 0
+        load_init(model, ema, opts["init_from"])
     amp = _resolve(cfg.run.amp, device)
     autocast = (lambda: torch.autocast(device_type=device.split(":")[0], dtype=torch.bfloat16)) if amp else nullcontext
 
