@@ -45,8 +45,10 @@ def main() -> None:
 @click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N samples of --data (default: all).")
 @click.option("--allow-missing", is_flag=True, help="Exit 0 even when some samples of --data have no prediction.")
 @click.option("--force", is_flag=True, help="Replace an existing output file (never one inside a run or dataset folder).")
+@click.option("--h-at", "h_at", type=click.Choice(["train", "native"]), default="train", show_default=True,
+              help="With --run: H sees the images at its training size (resized back for scoring) or at --data's own.")
 @click.option("--quiet", is_flag=True)
-def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, quiet) -> None:
+def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, h_at, quiet) -> None:
     """Normal angles and albedo/reflection L1 of predictions against PBR ground truth."""
     from .decomposition import format_table, score_predictions, write_results
 
@@ -62,7 +64,7 @@ def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, 
             # predictions are kept next to the summary (or in a fresh temporary folder)
             predictions = Path(tempfile.mkdtemp(prefix="iae_pred_")) / "predictions" if out is None \
                 else out.with_name(out.stem + "_predictions")
-            decompose_images(run_dir, data, predictions, limit=limit, progress=not quiet)
+            decompose_images(run_dir, data, predictions, limit=limit, progress=not quiet, h_at=h_at)
         rows, summary = score_predictions(data, predictions, limit=limit, progress=not quiet)
         summary_path, csv_path = write_results(rows, summary, out or predictions / "decomposition.json")
     click.echo(format_table(summary))

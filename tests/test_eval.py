@@ -373,3 +373,16 @@ def test_a_report_clears_runs_of_an_earlier_report_in_its_folder(report, tmp_pat
          "--intrinsics", str(root / "unseen"), "--out", str(out), "--grid", "2", "--quiet")
     assert not stale.exists()
     assert json.loads((out / "results.json").read_text())["runs"][0]["slug"] == "00_full"
+
+
+def test_h_can_run_at_the_sets_own_resolution(report, tmp_path):
+    from train.inference import decompose_images
+
+    out, _ = report
+    pbr = tiny_intrinsics(tmp_path / "pbr_big", n=2, h=64, w=128, seed=7, kind="pbr")
+    for h_at, size in (("train", [64, 32]), ("native", [128, 64])):
+        preds = decompose_images(out.parent / "full", pbr, tmp_path / h_at, progress=False, h_at=h_at)
+        info = json.loads((preds / "dataset.json").read_text())
+        assert info["network_size"] == size and info["resolution"] == [128, 64]
+    rows, summary = score_predictions(pbr, tmp_path / "native", progress=False)
+    assert summary["samples"] == 2 and np.isfinite(summary["normal_mean_deg"])

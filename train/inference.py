@@ -119,14 +119,23 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
 
 @torch.no_grad()
 def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu", batch: int = 4,
-                     limit: int | None = None, progress: bool = True, checkpoint: Path | None = None) -> Path:
+                     limit: int | None = None, progress: bool = True, checkpoint: Path | None = None,
+                     h_at: str = "train") -> Path:
     """H applied to photos or a PBR dataset, written as a `predictions` dataset (EXR + PNG previews).
 
     Predictions of a PBR dataset are resized back to its resolution and keep its sample
-    indices, so `iae-eval decomposition --predictions` compares them pixel by pixel.
+    indices, so `iae-eval decomposition --predictions` compares them pixel by pixel. `h_at`:
+    "train" runs H on the images resized to its training size (the default: what it learned on),
+    "native" at the PBR set's own resolution (H is fully convolutional; cars then appear larger
+    than in training).
     """
+    if h_at not in ("train", "native"):
+        raise ValueError(f"h_at {h_at!r}: expected 'train' or 'native'")
     cfg, model, step = load_run(run_dir, device, checkpoint)
     reals = RealImages(images, cfg.data.height, cfg.data.width)
+    if h_at == "native" and reals.ds is not None:
+        w, h = reals.ds.resolution
+        reals = RealImages(images, h, w)
     n = len(reals) if limit is None else min(limit, len(reals))
     out = fresh_output(out)
     try:
@@ -208,8 +217,8 @@ def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: in
         "source_recipe": reals.ds.info.get("recipe") if reals.ds is not None else None, "limit": limit,
         "run": str(Path(run_dir).resolve()), "step": step, "model": cfg.model.kind, "config_name": cfg.name,
         "weights": getattr(model, "weights", "raw"), "layers": list(INTRINSIC_LAYERS),
-        # H is fully convolutional but runs at the size it trained at; its maps are resized back
-        "network_size": [cfg.data.width, cfg.data.height]})
+        # H is fully convolutional; by default it runs at the size it trained at and its maps are resized back
+        "network_size": [reals.w, reals.h]})
     if reals.ds is None:
         return _decompose_photos(out, writer, images, cfg, model, reals, n, device, progress)
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
