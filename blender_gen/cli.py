@@ -16,7 +16,7 @@ from .dataset import MAX_INDEX
 from .envmap import PROCEDURAL_SETS
 from .generate import generate, merge
 from .recipe import Recipe
-from .cars.rules import MODEL_SUFFIXES
+from .cars.rules import MODEL_SUFFIXES, split_car
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
@@ -54,15 +54,39 @@ def check_envmap(path: str) -> str:
     return str(p.resolve())
 
 
+def _expand_cars(chunk: str) -> list[str]:
+    """One --cars argument as car tokens: a folder gives every model file under it, a glob pattern
+    its matches, and a name that is an existing file is taken whole (even with ',' or '+' in it);
+    otherwise comma-separated tokens (catalogue names, FILE or BODY+WHEELS files)."""
+    import glob
+
+    chunk = chunk.strip()
+    path = Path(chunk)
+    if path.is_dir():
+        files = sorted(str(f) for f in path.rglob("*") if f.is_file() and f.suffix.lower() in MODEL_SUFFIXES)
+        if not files:
+            _fail(f"--cars {chunk}: a folder without model files ({', '.join(MODEL_SUFFIXES)})")
+        return files
+    if path.is_file():
+        return [chunk]
+    if any(c in chunk for c in "*?["):
+        files = sorted(f for f in glob.glob(chunk, recursive=True) if Path(f).suffix.lower() in MODEL_SUFFIXES)
+        if not files:
+            _fail(f"--cars {chunk}: the pattern matches no model file ({', '.join(MODEL_SUFFIXES)})")
+        return files
+    return [t.strip() for t in chunk.split(",")]
+
+
 def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
     from .cars import load_catalogue, select_cars
 
     out, names = [], []
-    for token in (t.strip() for chunk in tokens for t in chunk.split(",")):
+    for token in (t for chunk in tokens for t in _expand_cars(chunk)):
         if not token:
             continue
         if Path(token).suffix.lower() in MODEL_SUFFIXES or "/" in token:
-            files = [Path(f) for f in token.split("+")]  # one car in several files: BODY+WHEELS
+            # one car in several files: BODY+WHEELS (a file whose own name holds '+' is taken whole)
+            files = split_car(token)
             for p in files:
                 if not p.is_file():
                     _fail(f"--cars {token}: no such model file {p}")
@@ -336,14 +360,14 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         _fail(f"--preview {preview}: the same file as --out; the picture would replace the rules")
     names: dict[str, str] = {}
     for token in tokens:
-        name = Path(token.split("+")[0]).stem
+        name = split_car(token)[0].stem
         if several and name in names:
             _fail(f"{names[name]} and {token}: both would write {out / (name + '.toml')}; "
                   "label models with one file name into separate --out folders")
         names[name] = token
     targets = []
     for token in tokens:
-        name = Path(token.split("+")[0]).stem
+        name = split_car(token)[0].stem
         rules_path = out / f"{name}.toml" if several else out
         png = out / f"{name}.png" if several else preview
         for path in (rules_path, png):
@@ -362,12 +386,12 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
             click.echo(f"{name}: placed {line}")
         lab = infer(table, forward=forward, up=up)
         areas = table.areas()
-        text = propose_rules(table, lab, Path(token.split("+")[0]).name, length=length)
+        text = propose_rules(table, lab, split_car(token)[0].name, length=length)
         rules_path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_target(rules_path) as tmp:
             Path(tmp).write_text(text, encoding="utf-8")
         try:
-            reproduced = rules_reproduce(table, lab, rules_path, token.split("+")[0])
+            reproduced = rules_reproduce(table, lab, rules_path, str(split_car(token)[0]))
         except RulesError as exc:
             _fail(f"{rules_path}: the proposed rules do not load ({exc}); please report this model")
         click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category} -> {rules_path}")

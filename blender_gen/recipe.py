@@ -44,7 +44,9 @@ class Recipe:
         """The fields that define the samples; files are named by content, not by path."""
         d = asdict(self)
         d["envmaps"] = [_file_identity(e) if e not in PROCEDURAL_SETS else e for e in self.envmaps]
-        d["cars"] = [[_file_identity(f) for f in c.split("+")] if "+" in c else _file_identity(c)
+        from .cars.rules import split_car
+
+        d["cars"] = [[_file_identity(str(f)) for f in split_car(c)] if len(split_car(c)) > 1 else _file_identity(c)
                      if Path(c).suffix else c for c in self.cars]
         if self.car_rules == "auto":  # inferred parts: the labeller's version is the rules' identity
             from .cars.labeller import LABELLER_VERSION

@@ -1,8 +1,9 @@
-"""Where cars come from (issue 18): body styles, seeded random cars, held-out separation,
+"""Where cars come from: body styles, seeded random cars, held-out separation,
 silhouette maths, the catalogue's distinctness, and random cars in a rendered dataset."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -220,3 +221,28 @@ def test_a_recipe_is_identified_by_every_file_a_model_import_reads(tmp_path):
     plain = tmp_path / "plain.obj"
     plain.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")  # a self-contained file keeps the identity it had
     assert "reads" not in Recipe(kind="intrinsics", seed=0, width=64, height=32, cars=(str(plain),)).identity()["cars"][0]
+
+
+def test_cars_take_folders_globs_and_file_names_with_commas_or_plus(tmp_path):
+    from blender_gen.cli import check_cars
+
+    fleet = tmp_path / "fleet"
+    (fleet / "vans").mkdir(parents=True)
+    for name in ("a.glb", "vans/b.obj", "notes.txt", "c,d.glb", "e+f.glb"):
+        (fleet / name).write_bytes(b"x")
+    rules = "auto"
+    got = check_cars((str(fleet),), rules)
+    assert [Path(t).name for t in got] == ["a.glb", "c,d.glb", "e+f.glb", "b.obj"]
+    assert [Path(t).name for t in check_cars((str(fleet / "*.glb"),), rules)] == ["a.glb", "c,d.glb", "e+f.glb"]
+    assert check_cars((str(fleet / "c,d.glb"),), rules) == (str((fleet / "c,d.glb").resolve()),)
+    from blender_gen.cars.rules import split_car
+
+    assert split_car(fleet / "e+f.glb") == [fleet / "e+f.glb"]
+    assert split_car(f"{fleet / 'a.glb'}+{fleet / 'vans' / 'b.obj'}") == [fleet / "a.glb", fleet / "vans" / "b.obj"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    import click
+
+    for bad, message in ((str(empty), "a folder without model files"), (str(fleet / "*.fbx"), "matches no model file")):
+        with pytest.raises(click.ClickException, match=message):
+            check_cars((bad,), rules)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..geometry import Mesh
 from .faces import read_car
-from .rules import SPLIT_PARTS, ModelSettings, Rules, RulesError, rule_labels
+from .rules import SPLIT_PARTS, ModelSettings, Rules, RulesError, rule_labels, split_car
 _AXIS = {"+X": (0, 1.0), "-X": (0, -1.0), "+Y": (1, 1.0), "-Y": (1, -1.0), "+Z": (2, 1.0), "-Z": (2, -1.0)}
 
 
@@ -41,7 +41,7 @@ def _rotation(forward: str, up: str) -> np.ndarray:
 
 def model_files(path: str | Path) -> list[Path]:
     """A car's files: one model file, or several joined by '+' (a body and its wheels)."""
-    files = [Path(p) for p in str(path).split("+")]
+    files = split_car(path)
     for f in files:
         if not f.is_file():
             raise RulesError(f"--cars {f}: no such model file")

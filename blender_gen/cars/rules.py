@@ -120,9 +120,16 @@ class ImportedSpec:
     split: str = "import"
 
 
+def split_car(token: str | Path) -> list[Path]:
+    """A car's files: one model file, or several joined by '+' (a body and its wheels). A token that
+    is itself an existing file is one file, even with '+' in its name."""
+    token = str(token)
+    return [Path(token)] if Path(token).is_file() else [Path(p) for p in token.split("+")]
+
+
 def imported_specs(files: list[str], rules: Rules) -> list[ImportedSpec]:
     """Specs of model files ('+' joins a car's several files: a body and its wheels)."""
-    first = [Path(str(f).split("+")[0]) for f in files]
+    first = [split_car(f)[0] for f in files]
     return [ImportedSpec(p.stem, rules.settings_for(p).category, str(f)) for p, f in zip(first, files)]
 
 
