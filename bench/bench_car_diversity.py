@@ -2,8 +2,8 @@
 
 Every car is seen by one orthographic camera per view (the limit of a distant long-lens camera;
 pixels are metres, 2 cm): side (the two sides mirror each other), end (front and rear alike)
-and top; a pair's IoU is the mean over the three views. Printed for the catalogue before
-issue 18 (`data_manifests/cars_v1.toml`, built by today's body code), the named catalogue, and
+and top; a pair's IoU is the mean over the three views. Printed for the first catalogue
+(`data_manifests/cars_v1.toml`, built by today's body code), the named catalogue, and
 random cars of `procedural:random`: median IoU within and across categories, the closest
 pair, pairs above 0.93, and whether categories are separable by silhouettes (leave-one-out
 category of the nearest model, and of the highest mean IoU with a category's members).

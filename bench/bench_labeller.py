@@ -1,4 +1,4 @@
-"""Automatic part labelling against hand-written rules (issue 18, part 4).
+"""Automatic part labelling against hand-written rules.
 
 For each of the 7 Kenney models in ../shared/assets/cars3d/ the faces are labelled twice: by the
 hand-written `data_manifests/kenney_car_kit_rules.toml` and by `labeller.infer` (no rules). The

@@ -145,7 +145,7 @@ class Interrupted(Exception):
 def _stop_requests():
     """One Ctrl-C (or SIGTERM) asks the run to stop after the sample being rendered; a second stops
     at once. A flag, not an exception: an exception raised inside Blender's render is printed as a
-    traceback and swallowed, and the render went on (issue 19.9)."""
+    traceback and swallowed, and the render went on."""
     import signal
     import threading
 

@@ -1,5 +1,5 @@
 """Data safety: manifests cannot point outside their dataset, one writer per folder, workers
-die with their parent, and failed writes leave nothing half-written (issue: hardening)."""
+die with their parent, and failed writes leave nothing half-written."""
 from __future__ import annotations
 
 import json

@@ -275,7 +275,7 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     _cli("report", str(run), "--data", str(pbr_b), *args)
     third = json.loads((out / "results.json").read_text())["runs"][0]
     assert third["dec"]["samples"] == 3 and third["dec"]["data"] == str(pbr_b.resolve())
-    # issue 19.1: retrained in place to the same step with another seed -> the cache is keyed by the
+    # retrained in place to the same step with another seed -> the cache is keyed by the
     # checkpoint's content and the config, not by path and step
     key_before = json.loads((preds / "dataset.json").read_text())["cache_key"]
     shutil.rmtree(run)

@@ -238,7 +238,7 @@ def test_a_folder_of_another_recipe_is_refused_and_kept(tiny_intrinsics, tmp_pat
                    "--quiet", check=False)
     assert proc.returncode != 0 and "another recipe" in proc.stderr and "'seed' is 3 there and 9 here" in proc.stderr
     assert _files(out) == before
-    # a set from before per-sample noise by frame number (issue 19.2) is refused with the reason
+    # a set from before per-sample noise by frame number is refused with the reason
     info = json.loads((out / "dataset.json").read_text())
     del info["recipe"]["noise"]
     (out / "dataset.json").write_text(json.dumps(info))

@@ -1,4 +1,4 @@
-"""Automatic part labelling (issue 18.4): inference on a synthetic car, rules proposed from it,
+"""Automatic part labelling: inference on a synthetic car, rules proposed from it,
 and the CLI on a real model when ../shared/assets is there."""
 from __future__ import annotations
 

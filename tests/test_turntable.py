@@ -125,7 +125,7 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
                     "--video", str(tmp_path / "R.avi"), check=False)
     assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
-    # issue 19.11: a folder that cannot take the video fails before any frame, naming why (as root a
+    # a folder that cannot take the video fails before any frame, naming why (as root a
     # read-only folder is writable, so the folder here is a file; /sys stands for read-only where it is)
     (tmp_path / "afile").write_text("x")
     for target in [tmp_path / "afile" / "R.mp4"] + ([Path("/sys/iae_test.mp4")] if Path("/sys").is_dir() else []):
@@ -141,7 +141,7 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     assert r["cycles"]["frames"] == FRAMES and r["cycles"]["whole_frame"] > 0
     assert r["ratio_whole_frame"] == pytest.approx(r["renderer"]["whole_frame"] / r["cycles"]["whole_frame"])
     assert "Cycles (reference)" in proc.stdout
-    # issue 19.10: a PBR set that is not a camera path, and a path whose Cycles frames never change
+    # a PBR set that is not a camera path, and a path whose Cycles frames never change
     import shutil
 
     from .train_helpers import tiny_intrinsics as blobs
