@@ -140,13 +140,16 @@ def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, qui
               help="Only the first N images of each set (default: all of them).")
 @click.option("--grid", default=4, show_default=True, type=click.IntRange(1, 64), help="Samples in the picture grids.")
 @click.option("--inception", type=click.Path(dir_okay=False), default=None)
+@click.option("--gallery", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="A folder of photos no run trained on: every run's H decomposes them for the report's gallery.")
 @click.option("--quiet", is_flag=True, help="No progress bars; print the report's paths, not its tables.")
-def report(runs, data, real, intrinsics, out, limit, grid, inception, quiet) -> None:
+def report(runs, data, real, intrinsics, out, limit, grid, inception, gallery, quiet) -> None:
     """Tables like the paper's (1: FID/KID, 3: decomposition), image grids and loss curves: HTML + Markdown."""
     from .report import build_report
 
     with one_line_errors():
-        page = build_report(list(runs), data, real, out, intrinsics, limit, grid, inception, progress=not quiet)
+        page = build_report(list(runs), data, real, out, intrinsics, limit, grid, inception, progress=not quiet,
+                            gallery=gallery)
     click.echo(f"{page}\n{Path(out) / 'report.md'}")
     if not quiet:  # --quiet: the paths only (scripts read the files)
         click.echo((Path(out) / "report.md").read_text())
@@ -312,7 +315,15 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--resolution", default=None,
               help="Training WIDTHxHEIGHT, as in iae-gen and export (the budget's by default, e.g. 128x64 for cpu).")
 @click.option("--intrinsics", "n_intrinsics", type=click.IntRange(2), default=None, help="Training intrinsics count.")
-@click.option("--real", "n_real", type=click.IntRange(2), default=None, help="Real stand-in image count.")
+@click.option("--real", "real", default=None, metavar="N|PHOTOS",
+              help="A count of real stand-in images (PBR of held-out cars), or a folder of your photos: the runs "
+                   "train on them and FID/KID compare against them; a few are held out for the report's gallery.")
+@click.option("--cars", "cars", multiple=True, metavar="SEL",
+              help="Your cars for every generated set (as iae-gen --cars: catalogue names, model files, folders, "
+                   "globs; repeatable): training intrinsics, the Table-3 set in unseen poses, the FID intrinsics.")
+@click.option("--car-rules", default=None, help="With model files in --cars: a rules TOML, or 'auto' (inferred parts).")
+@click.option("--gallery", type=click.IntRange(1, 64), default=8, show_default=True,
+              help="With --real PHOTOS: photos held out of training and shown decomposed in the report.")
 @click.option("--eval", "n_eval", type=click.IntRange(1), default=None, help="Table-3 set size.")
 @click.option("--fid", "n_fid", type=click.IntRange(2), default=None, help="FID intrinsics count.")
 @click.option("--runs", default=None, help=f"Comma-separated subset of: {', '.join(_RUN_NAMES)}.")
@@ -331,8 +342,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--seeds", "seeds", default=None, help="Sanity settings only: comma-separated training seeds "
               "(the budget's by default).")
 @click.option("--no-oracle", is_flag=True, help="Sanity settings only: skip the supervised oracle's runs.")
-def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_eval, n_fid, runs, jobs, threads,
-                  seed, run_seed, dry_run, overrides, settings, seeds, no_oracle) -> None:
+def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars, car_rules, gallery, n_eval, n_fid,
+                  runs, jobs, threads, seed, run_seed, dry_run, overrides, settings, seeds, no_oracle) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     import os
     import shutil
@@ -341,6 +352,9 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
     from .reproduce import BUDGETS, RUNS, Plan, reproduce
 
     if budget.startswith("sanity"):
+        for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real)):
+            if value:
+                raise click.BadParameter("the sanity settings use their own data", param_hint=flag)
         if data is not None:
             raise click.BadParameter("the sanity settings make their own data in OUT/data", param_hint="--data")
         return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run, overrides, settings, seeds, no_oracle)
@@ -348,6 +362,14 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
                         ("--settings", settings != "S0,S1")):
         if value:
             raise click.BadParameter("applies to the sanity budgets only", param_hint=flag)
+    n_real, photos = _real_option(real)
+    if cars:
+        from blender_gen.cli import check_cars
+
+        cars = check_cars(tuple(cars), car_rules)
+        car_rules = None if car_rules is None else car_rules if car_rules == "auto" else str(Path(car_rules).resolve())
+    elif car_rules is not None:
+        raise click.BadParameter("needs --cars (your car models)", param_hint="--car-rules")
     b = BUDGETS[budget]
     overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
                                    ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
@@ -375,10 +397,11 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
         click.echo(f"--jobs {jobs}: capped at {min(cores, len(chosen))} ({len(chosen)} run(s), {cores} core(s))")
         jobs = min(cores, len(chosen))
     plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed, data)
+                run_seed, data, tuple(cars), car_rules, photos, gallery)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
-    click.echo(f"  data      {b.n_intrinsics} intrinsics, {b.n_real} real stand-in, {b.n_eval} Table-3, {b.n_fid} FID "
-               f"intrinsics at {b.render}")
+    real_text = f"your photos in {photos} ({gallery} held out)" if photos is not None else f"{b.n_real} real stand-in"
+    click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
+               f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
     click.echo(f"  training  {len(chosen)} runs ({', '.join(chosen)}), {b.steps} steps each at "
                f"{b.train[1]}x{b.train[0]} (width x height), batch {b.batch}")
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
@@ -407,6 +430,20 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, n_real, n_
         raise click.ClickException("torchrun not found on PATH (it comes with torch)")
     with one_line_errors():
         reproduce(plan)
+
+
+def _real_option(real: str | None) -> tuple[int | None, Path | None]:
+    """--real N (a stand-in count) or --real PHOTOS (a folder): (count, None) or (None, folder)."""
+    if real is None:
+        return None, None
+    if re.fullmatch(r"\s*\d+\s*", real):
+        if int(real) < 2:
+            raise click.BadParameter(f"{real}: at least 2 real images", param_hint="--real")
+        return int(real), None
+    folder = Path(real)
+    if not folder.is_dir():
+        raise click.BadParameter(f"{real}: neither a count nor a folder of photos", param_hint="--real")
+    return None, folder.resolve()
 
 
 def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | None, threads: int | None, seed: int,

@@ -96,6 +96,22 @@ RESULT_RUN_FIELDS = ("run", "label", "step", "checkpoint", "checkpoint_sha256", 
                      "dec", "fid")
 
 
+def _gallery(run: Path, photos: Path, folder: Path, checkpoint: Path, progress: bool, warnings: list[str]) -> list[Path]:
+    """The run's H on the gallery photos (train.photos panels), one per photo in name order."""
+    import shutil
+
+    from train.inference import PhotosSkipped, decompose_images
+
+    shutil.rmtree(folder, ignore_errors=True)
+    try:
+        decompose_images(run, photos, folder, progress=progress, checkpoint=checkpoint)
+    except PhotosSkipped as exc:
+        if f"gallery: {exc}" not in warnings:
+            warnings.append(f"gallery: {exc}")
+    return sorted(p for p in (folder / "photos").glob("*.png") if not p.stem.endswith(
+        ("_normal", "_albedo", "_reflection", "_render")))
+
+
 def pin_checkpoint(run: Path, folder: Path) -> tuple[Path, int]:
     """The run's newest readable checkpoint, linked (or copied) into `folder`: every figure of the
     report comes from this one file, even while the run trains on and prunes its checkpoints."""
@@ -175,7 +191,7 @@ def _reference_entries(train_intrinsics: Path, data: Path, real: Path, intrinsic
 
 def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics: Path, limit: int | None = None,
                  grid: int = 4, inception: str | None = None, progress: bool = True,
-                 references: bool = True) -> Path:
+                 references: bool = True, gallery: Path | None = None) -> Path:
     """Evaluate every run on the same sets and write report.html, report.md and results.json.
 
     Refuses sets that overlap against the protocol (eval.protocol); FID/KID fakes are R's
@@ -233,12 +249,13 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
         probe_curve = probe_plot(stats, label)  # None for a run trained without --probe
         if probe_curve:
             atomic_write_bytes(rdir / "probe.png", probe_curve)
+        panels = _gallery(run, gallery, rdir / "gallery", checkpoint, progress, warnings) if gallery else []
         digest = sha256_file(checkpoint)
         shutil.rmtree(rdir / "checkpoint")  # its name and digest are recorded; the run keeps the file
         entries.append({"run": str(run), "label": label, "slug": slug, "dec": dec, "fid": fidkid, "curve": curve,
                         "checkpoint": checkpoint.name, "checkpoint_sha256": digest, "seed": cfg.run.seed,
                         "size": [cfg.data.height, cfg.data.width], "trained_on": trained_on[run],
-                        "probe_curve": probe_curve,
+                        "probe_curve": probe_curve, "gallery": panels,
                         "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
     if references:
         run, opts, cfg = runs_opts[0]
@@ -462,6 +479,9 @@ def _markdown(entries, datasets, warnings) -> str:
              _md_table(*_table3(entries)), "", TABLE3_NOTE, "",
              "## Data sets", "", _md_table(*_datasets_table(datasets)), ""]
     parts += [f"> WARNING: {w}" for w in warnings]
+    if any(e.get("gallery") for e in entries):
+        parts += ["", "## Your photos", "", "Each run's H on photos held out of training (photo, normal, albedo, "
+                  "reflection, R(H(photo))): report.html, and runs/NN_name/gallery/photos/."]
     parts += ["", "Pictures and loss curves: report.html; per-run files under runs/."]
     return "\n".join(parts) + "\n"
 
@@ -505,6 +525,18 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
                       for k in INTRINSIC_LAYERS]
             dec_rows.append("<tr>" + "".join(cells) + "</tr>")
 
+    # the gallery: photos no run trained on, each run's H and R(H(photo)) beside the photo
+    galleries = [e for e in entries if e.get("gallery")]
+    gallery_html = ""
+    if galleries:
+        blocks = []
+        for e in galleries:
+            figs = "".join(f'<figure>{_img(_data_uri(p.read_bytes()), e["label"] + " " + p.stem)}'
+                           f"<figcaption>{html.escape(p.stem)}</figcaption></figure>" for p in e["gallery"])
+            blocks.append(f"<h3>{html.escape(e['label'])}</h3>{figs}")
+        gallery_html = ("<h2>Your photos: each run's decomposition of photos held out of training</h2>"
+                        "<p>Per photo: the photo, H's normal, albedo and reflection at the photo's size, and "
+                        "R(H(photo)). Files: runs/NN_name/gallery/photos/.</p>" + "".join(blocks))
     warn_html = "".join(f'<p class="warning">WARNING: {html.escape(w)}</p>' for w in warnings)
     curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(Path(e['run']).name)})</h3>"
                      + _img(_data_uri(e["curve"]), f"loss curves {e['label']}")
@@ -517,6 +549,8 @@ body {{ font-family: sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
 th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: center; font-size: 13px; }}
 td img {{ width: 256px; display: block; }}  /* renders at training size shown as large as the inputs */
+figure img {{ max-width: 100%; }}
+figure {{ margin: 0 0 12px; }}
 h3 {{ margin-bottom: 0.2em; }}
 .warning {{ background: #fff3cd; border: 1px solid #e0b000; padding: 6px 10px; }}
 </style>
@@ -547,6 +581,7 @@ photos, full training), not as a like-for-like comparison.</p>
 <h2>Intrinsic decomposition: each run's H next to the ground truth</h2>
 <table><thead><tr><th></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
 <tbody>{''.join(dec_rows)}</tbody></table>
+{gallery_html}
 <h2>Data sets</h2>
 <p>Training intrinsics, real images and the evaluation set must not share samples (refused otherwise); FID fakes
 are R's renders of intrinsics the runs never saw.</p>

@@ -94,26 +94,66 @@ class Plan:
     runs: list[str] = field(default_factory=list)
     run_seed: int | None = None  # the trainings' seed (default: `seed`, which also makes the data)
     data: Path | None = None  # the datasets' folder (default: OUT/data); parts of one seed may share it
+    # a user's own data: car tokens for every generated set (iae-gen --cars), their rules, and a folder
+    # of photos as the real images (a few held out for the report's gallery) instead of the stand-in
+    cars: tuple[str, ...] = ()
+    car_rules: str | None = None
+    photos: Path | None = None
+    gallery: int = 8
 
     @property
     def data_dir(self) -> Path:
         return Path(self.data) if self.data is not None else self.out / "data"
 
+    @property
+    def real_dir(self) -> Path:
+        """The real images the runs train on: the stand-in PBR set, or the user's photos less the gallery."""
+        return self.data_dir / ("photos_train" if self.photos is not None else "real")
+
+    def split_photos(self) -> tuple[int, int]:
+        """Links to the user's photos in DATA/photos_train and DATA/photos_gallery: every k-th photo
+        (sorted by path) is held out for the gallery, the rest train. Deterministic, so parts of one
+        seed agree; (training, gallery) counts."""
+        from train.data import image_files
+
+        files = image_files(self.photos)
+        if len(files) < 4:
+            raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed (.jpg/.png)")
+        k = min(self.gallery, len(files) // 4)
+        held = {round(j * (len(files) - 1) / max(1, k - 1)) for j in range(k)} if k > 1 else {len(files) // 2}
+        for name, keep in (("photos_train", lambda j: j not in held), ("photos_gallery", lambda j: j in held)):
+            folder = self.data_dir / name
+            want = {"__".join(f.relative_to(self.photos).parts): f.resolve() for j, f in enumerate(files) if keep(j)}
+            have = {p.name: p for p in folder.iterdir()} if folder.is_dir() else {}
+            if {n: p.resolve() for n, p in have.items()} != want:
+                for p in have.values():
+                    p.unlink()
+                folder.mkdir(parents=True, exist_ok=True)
+                for n, target in want.items():
+                    (folder / n).symlink_to(target)
+        return len(files) - len(held), len(held)
+
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.data_dir, self.seed
         common = ["--resolution", b.render, "--workers", str(max(1, min(os.cpu_count() or 1, 8))), "--quiet"]
-        return [
-            ("training intrinsics (training cars, training skies)",
-             ["intrinsics", "--out", str(o / "intrinsics"), "--count", str(b.n_intrinsics), "--seed", str(s), *common]),
+        mine = (["--cars", *self.cars] + (["--car-rules", self.car_rules] if self.car_rules else [])) if self.cars else []
+        train_cars = mine or ["--cars", "procedural:train"]
+        which = "your cars" if self.cars else "training cars"
+        commands = [
+            (f"training intrinsics ({which}, training skies)",
+             ["intrinsics", "--out", str(o / "intrinsics"), "--count", str(b.n_intrinsics), "--seed", str(s), *mine,
+              *common]),
             ("real stand-in (held-out cars, held-out skies, PBR)",
              ["pbr", "--out", str(o / "real"), "--count", str(b.n_real), "--seed", str(s + 1), "--samples",
               str(b.pbr_samples), "--cars", "procedural:heldout", "--envmap", "procedural:heldout", *common]),
-            ("Table-3 set (training cars, unseen poses and paints, PBR)",
-             ["pbr", "--out", str(o / "eval"), "--count", str(b.n_eval), "--seed", str(s + 2), "--cars",
-              "procedural:train", "--envmap", "procedural", *common]),
-            ("FID intrinsics (training cars, a seed no run sees)",
-             ["intrinsics", "--out", str(o / "fid_intrinsics"), "--count", str(b.n_fid), "--seed", str(s + 3), *common]),
+            (f"Table-3 set ({which}, unseen poses and paints, PBR)",
+             ["pbr", "--out", str(o / "eval"), "--count", str(b.n_eval), "--seed", str(s + 2), *train_cars,
+              "--envmap", "procedural", *common]),
+            (f"FID intrinsics ({which}, a seed no run sees)",
+             ["intrinsics", "--out", str(o / "fid_intrinsics"), "--count", str(b.n_fid), "--seed", str(s + 3), *mine,
+              *common]),
         ]
+        return [c for c in commands if not (self.photos is not None and "real stand-in" in c[0])]
 
     def fit_command(self, name: str) -> list[str]:
         b = self.budget
@@ -132,7 +172,7 @@ class Plan:
             sets = [x for x in sets if not x.startswith("optim.decay_start")]
         sets += list(extra)
         data = self.data_dir
-        cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(data / "real"),
+        cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(self.real_dir),
                "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",
                "--probe", str(data / "eval")]  # the Table-3 set: curves of what the report will measure
         cmd += [a for s in sets for a in ("--set", s)]
@@ -232,7 +272,7 @@ class Plan:
         else:
             train = sum(left.values()) / b.rate / 60 / lanes
         data = (b.n_intrinsics / 30 * self._data_left("intrinsics")
-                + b.n_real * 0.7 * b.pbr_samples / 4 * self._data_left("real")
+                + (0 if self.photos is not None else b.n_real * 0.7 * b.pbr_samples / 4 * self._data_left("real"))
                 + b.n_eval * 1.2 * self._data_left("eval") + b.n_fid / 30 * self._data_left("fid_intrinsics")) / 60
         report = (len(self.runs) * (b.n_eval + 2 * b.n_fid) / 9 + b.n_real / 9) / 60
         return train + data + report + 1
@@ -282,8 +322,12 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
                        wait=lambda holder: click.echo(f"[data] waiting: {holder} is generating or checking "
                                                       f"{plan.data_dir}")):
         plan.check_shared_data()
-        for k, (what, args) in enumerate(plan.dataset_commands(), 1):
-            click.echo(f"[data {k}/4] {what}")
+        commands = plan.dataset_commands()
+        if plan.photos is not None:
+            n_train, n_gallery = plan.split_photos()
+            click.echo(f"[data] your photos: {n_train} to train on, {n_gallery} held out for the gallery")
+        for k, (what, args) in enumerate(commands, 1):
+            click.echo(f"[data {k}/{len(commands)}] {what}")
             _run(_gen(args), logs / "data.log")
 
     def train(name: str) -> str:
@@ -299,8 +343,9 @@ def reproduce(plan: Plan, progress: bool = True) -> Path:
     click.echo("[report] decomposition, FID/KID, reference rows, pictures")
     data = plan.data_dir
     report_dir = out / "report"
+    gallery = ["--gallery", str(data / "photos_gallery")] if plan.photos is not None else []
     _run([sys.executable, "-m", "eval.cli", "report", *[str(out / "runs" / r) for r in plan.runs], "--data",
-          str(data / "eval"), "--real", str(data / "real"), "--intrinsics", str(data / "fid_intrinsics"),
-          "--out", str(report_dir), "--quiet"], logs / "report.log")
+          str(data / "eval"), "--real", str(plan.real_dir), "--intrinsics", str(data / "fid_intrinsics"),
+          "--out", str(report_dir), "--quiet", *gallery], logs / "report.log")
     click.echo(f"done in {(time.time() - t0) / 60:.1f} min: {report_dir / 'report.html'}")
     return report_dir

@@ -141,7 +141,7 @@ def report(tmp_path_factory):
         runs.append(str(run))
     out = root / "out"
     proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen),
-                "--out", str(out), "--grid", "2", "--quiet")
+                "--out", str(out), "--grid", "2", "--quiet", "--gallery", str(photos))
     return out, proc
 
 
@@ -168,6 +168,11 @@ def test_report_has_tables_like_the_papers(report):
     assert len(results) == 2 and all(np.isfinite(r["fid"]["fid"]) for r in results)
     assert all(0 <= r["dec"]["normal_mean_deg"] <= 180 for r in results)
     assert list((out / "runs").glob("*/losses.png")) and list((out / "runs").glob("*/decomposition.csv"))
+    # --gallery: every run's H on the photos, at their size, shown in the page
+    panels = sorted((out / "runs" / "00_full" / "gallery" / "photos").glob("photo_?.png"))
+    assert [p.stem for p in panels] == [f"photo_{i}" for i in range(4)]
+    assert "Your photos" in (out / "report.html").read_text() and "## Your photos" in md
+    assert "Table 1" not in proc.stdout  # --quiet prints the paths, not the tables
 
 
 def test_report_page_loads_in_headless_chromium(report, headless_chromium):

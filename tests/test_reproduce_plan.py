@@ -147,3 +147,28 @@ def test_resolution_is_width_by_height_everywhere_and_the_swapped_order_is_refus
     for cli in ("blender_gen.cli", "train.cli", "eval.cli"):
         v = subprocess.run([sys.executable, "-m", cli, "--version"], capture_output=True, text=True, cwd=ROOT)
         assert v.returncode == 0 and "version 0.1.0" in v.stdout
+
+
+def test_own_cars_and_photos_make_the_plan(tmp_path):
+    from .train_helpers import tiny_photos
+
+    photos = tiny_photos(tmp_path / "my_photos", n=12)
+    plan = Plan(BUDGETS["smoke"], tmp_path / "out", 0, 1, 1, 0, ["full"], cars=("sedan_a", "suv_b"),
+                photos=photos, gallery=3)
+    commands = dict(plan.dataset_commands())
+    assert len(commands) == 3 and not any("stand-in" in what for what in commands)  # the photos are the real set
+    for what, args in commands.items():
+        assert args[args.index("--cars") + 1:args.index("--cars") + 3] == ["sedan_a", "suv_b"], what
+    assert plan.split_photos() == (9, 3)
+    assert len(list((plan.data_dir / "photos_gallery").iterdir())) == 3
+    assert plan.split_photos() == (9, 3)  # idempotent
+    fit = plan.fit_command("full")
+    assert fit[fit.index("--real") + 1] == str(plan.data_dir / "photos_train")
+    proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full",
+                           "--cars", "sedan_a", "--real", str(photos), "--out", str(tmp_path / "o"), "--dry-run"],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert f"your photos in {photos.resolve()} (8 held out)" in proc.stdout and "cars: 1 of yours" in proc.stdout
+    bad = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--real",
+                          str(tmp_path / "nope"), "--dry-run"], cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2 and "neither a count nor a folder of photos" in bad.stderr
