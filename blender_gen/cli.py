@@ -217,7 +217,7 @@ def main() -> None:
 @_common_options
 @click.option("--background", type=click.Choice(["environment", "black"]), default="environment", show_default=True,
               help="environment: the reflection layer shows the environment behind the car, so a real image's "
-                   "sky and ground are expressible as intrinsics (README: Making it learn); black: all layers 0 there.")
+                   "sky and ground are expressible as intrinsics (docs/experiment_log.md: Making it learn); black: all layers 0 there.")
 def intrinsics(**o) -> None:
     """Render the synthetic intrinsic maps M_s (normal, albedo, reflection, mask)."""
     _run(_build_recipe("intrinsics", "procedural:train", 1, o), o)

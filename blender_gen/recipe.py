@@ -37,7 +37,7 @@ class Recipe:
     orbit: Orbit | None = None
     # Intrinsics only. "black": the background of every layer is 0 (DESIGN.md). "environment":
     # the reflection layer's background is the environment seen directly behind the car, so the
-    # sky and ground of a real image are expressible as intrinsics (README: Making it learn).
+    # sky and ground of a real image are expressible as intrinsics (docs/experiment_log.md: Making it learn).
     background: str = "black"
 
     def identity(self) -> dict:
