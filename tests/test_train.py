@@ -521,3 +521,24 @@ def test_init_from_starts_a_new_run_from_another_runs_weights(data, tmp_path):
                str(tmp_path / "wider"), "--max-steps", "1", "--quiet", "--config", "cpu-small", *TINY,
                "--set", "model.h_ngf=16", check=False)
     assert bad.returncode == 1 and "do not fit this run's config" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_training_grids_are_titled_and_reach_tensorboard(data, tmp_path):
+    from train.loop import sample_grid
+
+    g = torch.Generator().manual_seed(0)
+    vis = {k: torch.rand(2, c, 32, 64, generator=g) * 2 - 1
+           for k, c in (("M_s", 9), ("fake_I", 3), ("rec_M", 9), ("I_r", 3), ("fake_M", 9), ("rec_I", 3))}
+    grid = sample_grid(vis)
+    assert grid.shape == (26 + 4 * 32, 84 + 7 * 64, 3)  # a title band, a legend margin, 7 columns, 2 rows per sample
+    head, legend = grid[:26, 84:], grid[26:, :84]
+    assert (head[..., 2] > head[..., 0] + 60).any() and (head[..., 0] > head[..., 2] + 60).any()  # both title rows
+    assert (legend < 128).any()
+    intr, photos = data
+    run = tmp_path / "run"
+    fit(run, tiny_cfg(run__grid_every=1), str(intr), str(photos), max_steps=1, progress=False)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(next(run.rglob("events.out.tfevents.*")).parent))
+    events.Reload()
+    assert "samples" in events.Tags()["images"]

@@ -115,12 +115,19 @@ def to_display(t: torch.Tensor) -> np.ndarray:
     return (x * 255.0 + 0.5).astype(np.uint8)
 
 
-def sample_grid(vis: dict[str, torch.Tensor]) -> np.ndarray:
-    """Two rows per sample.
+GRID_COLUMNS = (("N_s", "A_s", "F_s", "R(M_s)", "H_N(R(M_s))", "H_A(R(M_s))", "H_F(R(M_s))"),
+                ("I_r", "H_N(I_r)", "H_A(I_r)", "H_F(I_r)", "R(H(I_r))"))
 
-    rendering:     N_s | A_s | F_s | R(M_s) | H(R(M_s)) as N, A, F
-    decomposition: I_r | H(I_r) as N, A, F | R(H(I_r)) | blank
+
+def sample_grid(vis: dict[str, torch.Tensor]) -> np.ndarray:
+    """Two rows per sample, titled: a header names each column of both kinds of row, and each row
+    says which cycle it shows.
+
+    rendering cycle:     N_s | A_s | F_s | R(M_s) | H(R(M_s)) as N, A, F
+    decomposition cycle: I_r | H(I_r) as N, A, F | R(H(I_r)) | blank
     """
+    from PIL import Image, ImageDraw
+
     rows = []
     blank = None
     for i in range(vis["M_s"].shape[0]):
@@ -135,7 +142,20 @@ def sample_grid(vis: dict[str, torch.Tensor]) -> np.ndarray:
         r1 += [blank] * (width - len(r1))
         r2 += [blank] * (width - len(r2))
         rows += [np.concatenate(r1, axis=1), np.concatenate(r2, axis=1)]
-    return np.concatenate(rows, axis=0)
+    body = np.concatenate(rows, axis=0)
+    th, tw = blank.shape[:2]
+    margin, head = 84, 26
+    sheet = Image.new("RGB", (margin + body.shape[1], head + body.shape[0]), (255, 255, 255))
+    sheet.paste(Image.fromarray(body), (margin, head))
+    draw = ImageDraw.Draw(sheet)
+    for line, titles in enumerate(GRID_COLUMNS):  # header: rendering-row titles, then decomposition-row titles
+        draw.text((2, 1 + 12 * line), ("rendering:", "decomposition:")[line], fill=(0, 0, 0))
+        for c, title in enumerate(titles[:width]):
+            draw.text((margin + c * tw + 2, 1 + 12 * line), title, fill=((0, 0, 160), (160, 0, 0))[line])
+    for r in range(len(rows)):
+        draw.text((2, head + r * th + th // 2 - 6), ("rendering", "decomposition")[r % 2],
+                  fill=((0, 0, 160), (160, 0, 0))[r % 2])
+    return np.asarray(sheet)
 
 
 def _save_png(path: Path, img: np.ndarray) -> None:
@@ -380,6 +400,11 @@ class StatsLog:
         for key, v in logs.items():
             self.writer.add_scalar(key, v, step)
 
+    def image(self, tag: str, img: np.ndarray, step: int) -> None:
+        """A picture (HxWx3 uint8) in TensorBoard's Images tab beside the numbers."""
+        if self.writer is not None:
+            self.writer.add_image(tag, img, step, dataformats="HWC")
+
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
@@ -529,7 +554,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
                 if probing:
                     write_probe_plot(run)
                 if dd.main and (step % cfg.run.grid_every == 0 or step == end):
-                    write_grid(model, fixed_m, fixed_i, run.grid_path(step), autocast)
+                    grid = write_grid(model, fixed_m, fixed_i, run.grid_path(step), autocast)
+                    stats.image("samples", grid, step)
                 stopping = _any_rank(stop.signal is not None, dd.world, device)
                 if step % cfg.run.checkpoint_every == 0 or step == end or stopping:
                     checkpoint(step)
@@ -585,12 +611,14 @@ def write_probe_plot(run: RunFolder) -> None:
 
 
 @torch.no_grad()
-def write_grid(model, fixed_m: torch.Tensor, fixed_i: torch.Tensor, path: Path, autocast=nullcontext) -> None:
+def write_grid(model, fixed_m: torch.Tensor, fixed_i: torch.Tensor, path: Path, autocast=nullcontext) -> np.ndarray:
     model.eval()
     # a private RNG: grids use the same random codes every time and never shift training's
     devices = [fixed_m.device] if fixed_m.is_cuda else []
     with torch.random.fork_rng(devices=devices), autocast():
         torch.manual_seed(0)
         out = model.forward_all(fixed_m, fixed_i, everything=True)
-    _save_png(path, sample_grid({k: v.float() for k, v in model.visuals(out).items()}))
+    grid = sample_grid({k: v.float() for k, v in model.visuals(out).items()})
+    _save_png(path, grid)
     model.train()
+    return grid
