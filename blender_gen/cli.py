@@ -434,6 +434,23 @@ def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int
         sys.exit(1)
 
 
+@main.command("convert")
+@click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--to", "fmt", required=True, type=click.Choice(["npy", "png16"]),
+              help="npy: float32 arrays in the dataset's units; png16: 16-bit PNGs (encodings in conversion.json).")
+@click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path), help="A new or empty folder.")
+@click.option("--layers", default=None, help="Comma-separated layers (default: all of the set's).")
+@click.option("--quiet", is_flag=True)
+def convert_cmd(root: Path, fmt: str, out: Path, layers: str | None, quiet: bool) -> None:
+    """A dataset as one file per sample and layer (OUT/LAYER/NNNNNN.npy|png) for tools without EXR."""
+    from .convert import convert_dataset
+
+    with one_line_errors():
+        path = convert_dataset(root, out, fmt, [x.strip() for x in layers.split(",")] if layers else None,
+                               progress=not quiet)
+    click.echo(f"{path}: {fmt} files, encodings in {path / 'conversion.json'}")
+
+
 @main.command("merge")
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.argument("shards", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))

@@ -1,4 +1,4 @@
-"""The dataset format: the contract between blender_gen, train and eval (no bpy here).
+"""The dataset format: the contract between blender_gen, train and eval (no bpy, no torch here).
 
 ```
 DATASET/
@@ -7,6 +7,16 @@ DATASET/
   samples/000000.exr  one multi-layer half-float EXR per sample
   previews/           optional sRGB PNGs
 ```
+
+Reading a set needs only NumPy and OpenEXR:
+
+    from blender_gen.dataset import open_dataset
+    ds = open_dataset("out/demo/pbr_eval")
+    for sample in ds.samples(["rgb", "normal"]):   # checksums verified as each file is read
+        sample["index"], sample["meta"]["car"]["name"], sample["rgb"].shape   # (H, W, 3) float32
+
+Layers: `normal` (camera space, unit length, 0 off the object), `albedo`, `reflection` and `rgb`
+(linear light), `mask` (coverage in [0, 1]) and `material` (integer part id) as float32 (H, W, C).
 """
 from __future__ import annotations
 
@@ -285,6 +295,22 @@ class Dataset:
 
     def __iter__(self) -> Iterator[dict]:
         return iter(self.rows)
+
+    @property
+    def layers(self) -> tuple[str, ...]:
+        """The layers every sample of this kind holds."""
+        return KIND_LAYERS[self.kind]
+
+    def sample(self, i: int, layers: Iterable[str] | None = None, verify: bool = True) -> dict:
+        """Sample i (by position) as a dict: "index" (its sample index), "meta" (its manifest row:
+        car, paint, environment, camera, ...) and one float32 (H, W, C) array per layer."""
+        return {"index": self.rows[i]["index"], "meta": self.rows[i], **self.load(i, layers, verify)}
+
+    def samples(self, layers: Iterable[str] | None = None, verify: bool = True) -> Iterator[dict]:
+        """Every sample in index order (`sample`), each file checked against its checksum as it is read."""
+        wanted = list(layers) if layers is not None else None
+        for i in range(len(self.rows)):
+            yield self.sample(i, wanted, verify)
 
     def identity(self) -> dict:
         """What a set is, independent of where it lies: its kind, resolution, sample count and the

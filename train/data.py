@@ -104,6 +104,34 @@ def flip_stack(m: torch.Tensor) -> torch.Tensor:
     return m
 
 
+class LayerDataset(Dataset):
+    """Any dataset of this project as a torch Dataset for one's own training code: item i is a dict
+    with "index" and one (C, H, W) float32 tensor per layer, in the dataset's units (linear colour,
+    unit normals) or, with `network=True`, in this trainer's network space ([-1, 1], sRGB colour).
+
+        loader = DataLoader(LayerDataset("out/demo/pbr_eval", ["rgb", "normal"]), batch_size=8)
+    """
+
+    def __init__(self, root: Path, layers: list[str] | tuple[str, ...] | None = None, network: bool = False):
+        self.ds = open_dataset(root)
+        self.layers = tuple(layers) if layers is not None else self.ds.layers
+        unknown = [k for k in self.layers if k not in self.ds.layers]
+        if unknown:
+            raise DatasetError(f"{root}: a {self.ds.kind} set has no layer(s) {unknown}; it has {list(self.ds.layers)}")
+        self.network = network
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitem__(self, i: int) -> dict:
+        arrays = self.ds.load(i, self.layers)
+        out: dict = {"index": self.ds.rows[i]["index"]}
+        for k, a in arrays.items():
+            a = to_network(k, a) if self.network and k != "material" else a
+            out[k] = torch.from_numpy(np.ascontiguousarray(a)).permute(2, 0, 1).contiguous()
+        return out
+
+
 class IntrinsicsData(Dataset):
     """M_s = (normal, albedo, reflection) -> (9, H, W) in network space."""
 
