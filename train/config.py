@@ -64,9 +64,10 @@ class ModelConfig:
     shader_lighting: str = "per_image"
     lighting_bank: int = 256
     # "per_image": each shading fit also fits a reflection gain; "shared": one learned gain per colour
-    # channel for every image, starting at shader_gain_start. Fitted per image, the gain let H put a
-    # real image into its reflection map (the fit then explains it better than the truth does on PBR
-    # images: residual 0.17 against 0.30 on S1, gains 0.34 against the truth's 0.13)
+    # channel for every image, starting at shader_gain_start. Fitted per image, the gain lets H put a
+    # real image into its reflection map (its fit then beats the truth's on PBR images: residual 0.17
+    # against 0.30 on S1, gains 0.21-0.34 against the truth's 0.13); shared, reflection improved but
+    # normals did not (S1 seed 0 5.9 deg worse at step 1375, seed 1 level: docs/normals_from_shading.md)
     shader_gain: str = "per_image"
     shader_gain_start: float = 0.25
     # D_I (3 ch) and D_M (9 ch): multi-scale PatchGAN, 2 scales (the paper)
