@@ -25,6 +25,13 @@ def _fail(msg: str) -> None:
     raise click.ClickException(msg)
 
 
+def _finite_option(ctx, param, value):
+    """click's FloatRange lets NaN through (every comparison with it is false)."""
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"{value!r}: expected a finite number")
+    return value
+
+
 def parse_resolution(text: str) -> tuple[int, int]:
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
     if not m:
@@ -119,7 +126,7 @@ def _common_options(fn):
                      help="Dataset folder (created; re-running resumes it)."),
         click.option("--count", required=True, type=click.IntRange(1, MAX_INDEX + 1),
                      help="Number of samples in the dataset."),
-        click.option("--seed", default=0, show_default=True, type=int, help="Recipe seed: same seed, same dataset."),
+        click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Recipe seed: same seed, same dataset."),
         click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels."),
         click.option("--cars", "cars", multiple=True,
                      help="Catalogue selectors (procedural, procedural:train, procedural:heldout, a category, "
@@ -240,10 +247,10 @@ def pbr(**o) -> None:
 @click.option("--car", "car", required=True, help="One catalogue car (see `iae-gen cars`) or a model file with --car-rules.")
 @click.option("--car-rules", type=click.Path(dir_okay=False), default=None)
 @click.option("--frames", required=True, type=click.IntRange(1, MAX_INDEX + 1), help="Frames in one full orbit.")
-@click.option("--radius", default=Orbit.radius, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@click.option("--radius", default=Orbit.radius, show_default=True, type=click.FloatRange(min=0, min_open=True), callback=_finite_option,
               help="Camera distance from the car's centre (m).")
 @click.option("--height", "cam_height", default=Orbit.height, show_default=True, type=float, help="Camera height (m).")
-@click.option("--focal", default=None, type=click.FloatRange(min=0, min_open=True),
+@click.option("--focal", default=None, type=click.FloatRange(min=0, min_open=True), callback=_finite_option,
               help="Focal length (mm, 36 mm sensor); default: the longest that shows the whole car in every frame.")
 @click.option("--start", default=0.0, show_default=True, type=float, help="Angle of the first frame (degrees).")
 @click.option("--envmap", default=None, help="Equirectangular .hdr/.exr or a built-in sky set (default: procedural).")
@@ -255,7 +262,7 @@ def pbr(**o) -> None:
                    "environment backgrounds expects them); a --pbr path's layers are the ground truth, black there.")
 @click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel (--pbr: 8).")
 @click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256))
 @click.option("--quiet", is_flag=True)
 def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, envmap, env_rotation, paint, pbr, background,
@@ -303,7 +310,7 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
 @click.option("--columns", default=4, show_default=True, type=click.IntRange(1, 64))
 @click.option("--count", default=24, show_default=True, type=click.IntRange(1, 1000),
               help="Cars drawn from a procedural:random selector.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of procedural:random cars.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Seed of procedural:random cars.")
 @click.option("--quiet", is_flag=True)
 def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: int, count: int, seed: int,
              quiet: bool) -> None:
@@ -329,7 +336,7 @@ def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: i
               help="RULES.toml for one model; a folder (NAME.toml each) for several.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Part-colour PNG (side, front, top, bottom) for one model; with several, NAME.png in --out.")
-@click.option("--length", default=4.5, show_default=True, type=click.FloatRange(0.5, 30),
+@click.option("--length", default=4.5, show_default=True, type=click.FloatRange(0.5, 30), callback=_finite_option,
               help="Bumper-to-bumper length in metres written to the rules.")
 @click.option("--forward", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
               help="The model's front axis after import (default: inferred from its lamps or profile).")

@@ -267,7 +267,7 @@ def flicker(runs, path, intrinsics, out, force) -> None:
 @click.option("--label-b", default="B", show_default=True)
 @click.option("--height", default=256, show_default=True, type=click.IntRange(16, 4096),
               help="Every image is shown at this height (re-encoded alike, so the format is no tell).")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
 def ab_study(a, b, real, pairs, out, label_a, label_b, height, seed) -> None:
     """The paper's human A/B study: a self-contained HTML page of randomised image pairs."""
     from .ab_study import build_study
@@ -331,8 +331,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
               help="Trainings at once (default: on CPU one per core, each with one thread; on GPUs 1).")
 @click.option("--threads", type=click.IntRange(1), default=None,
               help="CPU threads per training (default: cores / --jobs); set 1 when several reproduce runs share the cores.")
-@click.option("--seed", type=int, default=100, show_default=True)
-@click.option("--run-seed", type=int, default=None,
+@click.option("--seed", type=click.IntRange(0), default=100, show_default=True)
+@click.option("--run-seed", type=click.IntRange(0), default=None,
               help="Seed of the trainings (default: --seed): another run seed on the same data.")
 @click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
@@ -469,6 +469,8 @@ def _sanity_cmd(budget: str, out: Path | None, steps: int | None, jobs: int | No
             raise click.BadParameter(f"{seeds!r}: expected comma-separated integers", param_hint="--seeds") from None
         if len(set(picked)) != len(picked):
             raise click.BadParameter(f"{seeds!r}: a seed named twice", param_hint="--seeds")
+        if min(picked) < 0:
+            raise click.BadParameter(f"{seeds!r}: seeds are at least 0", param_hint="--seeds")
         b = replace(b, seeds=picked)
     try:  # a bad key fails here, not after the data are made
         load_config("cpu-small", list(overrides))

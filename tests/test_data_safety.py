@@ -262,3 +262,26 @@ def test_inspect_on_a_predictions_dataset_and_on_a_row_without_checksum(tmp_path
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     _write_rows(root, [{k: v for k, v in rows[0].items() if k != "sha256"}])
     _one_line_error(run_gen("inspect", str(root), "--quiet", check=False), "'sha256' must be 64 lowercase hex")
+
+
+def test_negative_seeds_and_non_finite_numbers_are_refused_where_they_are_given(tmp_path):
+    from click.testing import CliRunner
+
+    from blender_gen.cli import main as gen_main
+    from eval.cli import main as eval_main
+    from train.config import ConfigError, load_config
+
+    out = str(tmp_path / "d")
+    for args, where in ((["intrinsics", "--out", out, "--count", "1", "--seed", "-1"], "--seed"),
+                        (["label-parts", "x.glb", "--out", out, "--length", "nan"], "finite"),
+                        (["turntable", "--out", out, "--radius", "nan"], "finite")):
+        res = CliRunner().invoke(gen_main, args)
+        assert res.exit_code == 2 and where in res.output, res.output
+    for args in (["reproduce", "--seed", "-3", "--dry-run"], ["reproduce", "--run-seed", "-1", "--dry-run"],
+                 ["reproduce", "--budget", "sanity", "--seeds", "0,-1", "--dry-run"]):
+        res = CliRunner().invoke(eval_main, args)
+        assert res.exit_code == 2 and "seed" in res.output, res.output
+    for setting, message in (("run.seed=-1", "run.seed"), ("loss.w_ren=nan", "loss.w_ren"),
+                             ("loss.w_dec=inf", "loss.w_dec"), ("data.cache_gb=nan", "data.cache_gb")):
+        with pytest.raises(ConfigError, match=message):
+            load_config("cpu-small", [setting])

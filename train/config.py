@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import math
 import tomllib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -294,8 +295,20 @@ def _at_least(cfg: Config, minimum: float, *keys: str) -> None:
     for key in keys:
         section, name = key.split(".")
         value = getattr(getattr(cfg, section), name)
-        if value < minimum:
-            raise ConfigError(f"{key}: expected at least {minimum:g}, got {value!r}")
+        if not value >= minimum or value == math.inf:  # NaN and infinity fail here, not at step 1
+            raise ConfigError(f"{key}: expected a finite number of at least {minimum:g}, got {value!r}")
+
+
+def _finite(cfg: Config) -> None:
+    """Every number of the config finite: NaN would pass other checks and stop training at step 1 as a
+    'non-finite loss', or be written to the run's options as non-standard JSON."""
+    for key in _all_keys(cfg):
+        if "." not in key:  # the config's name
+            continue
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
 
 
 def _ignored_settings(cfg: Config) -> list[str]:
@@ -324,6 +337,7 @@ def unread_sections(cfg: Config) -> list[str]:
 def validate(cfg: Config) -> Config:
     """Every value in range and every setting read by the chosen model kind; checked before any file is written."""
     m, lo, o = cfg.model, cfg.loss, cfg.optim
+    _finite(cfg)
     _choice("model.kind", m.kind, tuple(KIND_SECTIONS))
     ignored = _ignored_settings(cfg)
     if ignored:
@@ -357,7 +371,7 @@ def validate(cfg: Config) -> Config:
               "munit.mlp_dim", "munit.d_ndf", "munit.d_layers", "munit.d_scales", "optim.max_steps",
               "optim.step_size", "run.log_every", "run.grid_every", "run.checkpoint_every", "run.keep_checkpoints",
               "run.grid_samples", "run.probe_samples")
-    _at_least(cfg, 0, "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
+    _at_least(cfg, 0, "run.seed", "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
               "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",

@@ -162,8 +162,8 @@ def _settings(data: dict, base: ModelSettings, where: str) -> ModelSettings:
         raise RulesError(f"{where}: forward and up must be one of {AXES}, got {s.forward!r}, {s.up!r}")
     if s.forward[1] == s.up[1]:
         raise RulesError(f"{where}: forward ({s.forward}) and up ({s.up}) must be different axes")
-    if not isinstance(s.length, (int, float)) or s.length <= 0:
-        raise RulesError(f"{where}: length must be a positive number of metres, got {s.length!r}")
+    if not isinstance(s.length, (int, float)) or not 0.5 <= s.length <= 30:  # NaN and inf fail too
+        raise RulesError(f"{where}: length must be a car's length in metres (0.5 to 30), got {s.length!r}")
     if s.default_part not in PARTS:
         raise RulesError(f"{where}: default_part {s.default_part!r} is not a part; parts: {list(PARTS)}")
     if s.category not in CATEGORIES:
