@@ -295,8 +295,10 @@ def _at_least(cfg: Config, minimum: float, *keys: str) -> None:
     for key in keys:
         section, name = key.split(".")
         value = getattr(getattr(cfg, section), name)
-        if not value >= minimum or value == math.inf:  # NaN and infinity fail here, not at step 1
-            raise ConfigError(f"{key}: expected a finite number of at least {minimum:g}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):  # NaN fails here, not at step 1
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        if value < minimum:
+            raise ConfigError(f"{key}: expected at least {minimum:g}, got {value!r}")
 
 
 def _finite(cfg: Config) -> None:
