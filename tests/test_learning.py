@@ -219,6 +219,35 @@ def test_cache_gives_the_decoded_tensors_and_rebuilds_when_the_data_changes(data
     assert torch.equal(again[(0, False)], ds[(0, False)])
     meta.unlink()
     assert torch.equal(CachedTensors(ds, tmp_path / "c" / "intr.npy", stack=True)[(2, False)], ds[(2, False)])
+    # derived data: a damaged key, a truncated array and a killed build's temporary cost a rebuild
+    meta.write_text("{not json")
+    assert torch.equal(CachedTensors(ds, tmp_path / "c" / "intr.npy", stack=True)[(1, False)], ds[(1, False)])
+    npy = tmp_path / "c" / "intr.npy"
+    npy.write_bytes(npy.read_bytes()[: npy.stat().st_size // 2])
+    (tmp_path / "c" / ".intr.npy.tmp999").write_bytes(b"\0" * 4096)
+    assert torch.equal(CachedTensors(ds, npy, stack=True)[(3, False)], ds[(3, False)])
+    assert not list((tmp_path / "c").glob(".intr.npy.tmp*"))
+    # a photo replaced by another of the same size and modification time is not served from the cache
+    import os
+    import shutil
+
+    from PIL import Image
+
+    from .train_helpers import tiny_photos
+
+    photos = tiny_photos(tmp_path / "photos", n=2)
+    first = RealImages(photos, 32, 64)
+    CachedTensors(first, tmp_path / "c" / "photos.npy", stack=False)
+    target = photos / "photo_1.png"
+    st = target.stat()
+    swapped = tmp_path / "swap.png"
+    Image.new("RGB", (90, 60), (250, 10, 10)).save(swapped)
+    swapped.write_bytes(swapped.read_bytes()[: st.st_size].ljust(st.st_size, b"\0"))  # same size
+    shutil.copyfile(swapped, tmp_path / "same_size.png")
+    os.replace(tmp_path / "same_size.png", target)
+    os.utime(target, ns=(st.st_atime_ns, st.st_mtime_ns))  # same modification time
+    reread = RealImages(photos, 32, 64)
+    assert torch.equal(CachedTensors(reread, tmp_path / "c" / "photos.npy", stack=False)[(1, False)], reread[(1, False)])
 
 
 def _fit(*args: str) -> subprocess.CompletedProcess:

@@ -271,7 +271,8 @@ def infinite_loader(ds: Dataset, sampler: StepSampler, workers: int) -> Iterator
 
 def content_key(ds: Dataset) -> str:
     """What a dataset's training-size tensors depend on: its samples' checksums (EXR sets) or its
-    photos' paths, sizes and modification times."""
+    photos' paths, sizes, inodes and modification and change times (a photo replaced by another of
+    the same size and modification time has a new change time, which no tool can set back)."""
     import hashlib
 
     h = hashlib.sha256()
@@ -282,7 +283,7 @@ def content_key(ds: Dataset) -> str:
     else:
         for p in ds.files:
             st = p.stat()
-            h.update(f"{p.resolve()}:{st.st_size}:{st.st_mtime_ns};".encode())
+            h.update(f"{p.resolve()}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{st.st_ino};".encode())
     return h.hexdigest()
 
 
@@ -291,11 +292,11 @@ class CachedTensors(Dataset):
     (float32, so batches are bit-identical to decoding on the fly); flips are applied on read.
 
     The file is keyed by the content and the resolution (a .json beside it, written last), so a
-    changed dataset or size rebuilds it, and a half-built file is never used."""
+    changed dataset or size rebuilds it, and a half-built file is never used. The cache is derived
+    data: a damaged key or a truncated array costs a rebuild, not the run, and the temporary of a
+    build that was killed is removed by the next (the run folder's lock makes it the only writer)."""
 
     def __init__(self, ds: Dataset, path: Path, stack: bool, progress: bool = False):
-        import json
-
         from blender_gen.dataset import atomic_write_json, temp_name
         from tqdm import tqdm
 
@@ -303,7 +304,10 @@ class CachedTensors(Dataset):
         path, meta = Path(path), Path(path).with_suffix(".json")
         sample = ds[(0, False)]
         key = {"content": content_key(ds), "shape": [len(ds), *sample.shape], "dtype": "float32"}
-        if not (path.exists() and meta.exists() and json.loads(meta.read_text()) == key):
+        for stale in path.parent.glob(f".{path.name}.tmp*"):  # a build killed before its rename
+            stale.unlink(missing_ok=True)
+        self.data = self._open(path, meta, key)
+        if self.data is None:
             meta.unlink(missing_ok=True)
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = temp_name(path)
@@ -314,7 +318,20 @@ class CachedTensors(Dataset):
             del arr
             os.replace(tmp, path)
             atomic_write_json(meta, key)
-        self.data = np.load(path, mmap_mode="r")
+            self.data = np.load(path, mmap_mode="r")
+
+    @staticmethod
+    def _open(path: Path, meta: Path, key: dict) -> np.ndarray | None:
+        """The cached array if its key matches and it reads whole, else None (to be rebuilt)."""
+        import json
+
+        try:
+            if json.loads(meta.read_text()) != key:
+                return None
+            data = np.load(path, mmap_mode="r")
+        except (OSError, ValueError):  # missing, damaged key, truncated or corrupt array
+            return None
+        return data if list(data.shape) == key["shape"] and data.dtype == np.float32 else None
 
     def __len__(self) -> int:
         return len(self.data)
