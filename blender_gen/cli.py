@@ -363,6 +363,8 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         _fail("--preview: one PNG for one model; with several, NAME.png is written beside each NAME.toml")
     if (forward is None) != (up is None):
         _fail("--forward and --up: give both or neither")
+    if forward is not None and forward[1] == up[1]:
+        _fail(f"--forward {forward} --up {up}: the two axes must differ (front and roof cannot face one way)")
     if preview is not None and preview.resolve() == out.resolve():
         _fail(f"--preview {preview}: the same file as --out; the picture would replace the rules")
     names: dict[str, str] = {}

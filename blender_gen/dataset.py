@@ -361,6 +361,27 @@ def folder_is_empty(root: Path) -> bool:
     return all(p.name == LOCK_NAME for p in Path(root).iterdir())
 
 
+def lock_holder(root: Path) -> str | None:
+    """Who holds the writer's lock on `root` now ("pid ... on HOST since ..."), or None: a reader's
+    check that no generator is still writing the folder."""
+    import fcntl
+
+    path = Path(root) / LOCK_NAME
+    if not path.exists():
+        return None
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise
+            return os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+        return None
+    finally:
+        os.close(fd)
+
+
 @contextmanager
 def locked_folder(root: Path, option: str = "--out", wait: Callable[[str], None] | None = None):
     """Hold an exclusive lock on a dataset folder while writing it.

@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .dataset import (KIND_LAYERS, MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
-                      folder_is_empty, locked_folder, read_info, read_manifest, verify_rows, write_manifest)
+                      folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, verify_rows, write_manifest)
 from .recipe import Recipe, identity_diff
 
 
@@ -303,6 +303,13 @@ def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
     out = Path(out)
     if out.exists() and not folder_is_empty(out):
         raise GenerationError(f"merge: --out {out} is not empty")
+    for s in shards:  # before --out exists: a refused merge leaves nothing that refuses the rerun
+        holder = lock_holder(s)
+        if holder is not None:
+            raise GenerationError(f"merge: {s} is being written by {holder}; merge once its generator has finished")
+        if read_info(s).get("complete") is False:
+            raise GenerationError(f"merge: {s} is incomplete (its generator stopped early); rerun it to finish, "
+                                  "then merge")
     with locked_folder(out):
         return _merge_locked(out, shards, progress)
 

@@ -103,8 +103,19 @@ def _named_file(folder: Path, rest: str) -> str | None:
 
 
 def companion_files(path: Path) -> list[str]:
-    """Files (relative to the model's folder, sorted) that importing `path` also reads."""
-    path = Path(path)
+    """Files (relative to the model's folder, sorted) that importing `path` also reads. One that
+    lies outside the model's folder (`../`, an absolute path) is refused before anything reads it."""
+    found = _companions(Path(path))
+    folder = Path(path).resolve().parent
+    for rel in found:
+        target = (folder / rel).resolve()
+        if folder not in target.parents:
+            raise ValueError(f"--cars {path}: refers to {rel!r}, outside the model's folder; a model may only "
+                             "read files beside or below it")
+    return found
+
+
+def _companions(path: Path) -> list[str]:
     folder, suffix = path.parent, path.suffix.lower()
     found: set[str] = set()
     if suffix == ".obj":

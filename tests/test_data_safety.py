@@ -285,3 +285,32 @@ def test_negative_seeds_and_non_finite_numbers_are_refused_where_they_are_given(
                              ("loss.w_dec=inf", "loss.w_dec"), ("data.cache_gb=nan", "data.cache_gb")):
         with pytest.raises(ConfigError, match=message):
             load_config("cpu-small", [setting])
+
+
+def test_merge_refuses_a_shard_being_written_or_stopped_early_and_leaves_no_out(tmp_path):
+    shard = tiny_intrinsics(tmp_path / "shard", n=2)
+    with locked_folder(shard):
+        proc = run_gen("merge", "--out", str(tmp_path / "m"), str(shard), "--quiet", check=False)
+    _one_line_error(proc, "is being written by pid")
+    assert not (tmp_path / "m").exists()
+    info = json.loads((shard / "dataset.json").read_text())
+    (shard / "dataset.json").write_text(json.dumps({**info, "complete": False}))
+    proc = run_gen("merge", "--out", str(tmp_path / "m"), str(shard), "--quiet", check=False)
+    _one_line_error(proc, "is incomplete")
+    assert not (tmp_path / "m").exists()
+
+
+def test_label_parts_refuses_parallel_axes_and_models_reading_outside_their_folder(tmp_path):
+    (tmp_path / "secret.bin").write_bytes(b"\0" * 12)
+    car = tmp_path / "models" / "car.gltf"
+    car.parent.mkdir()
+    car.write_text('{"asset": {"version": "2.0"}, "buffers": [{"uri": "../secret.bin", "byteLength": 12}]}')
+    proc = run_gen("label-parts", str(car), "--out", str(tmp_path / "r.toml"), check=False)
+    _one_line_error(proc, "outside the model's folder")
+    proc = run_gen("intrinsics", "--out", str(tmp_path / "d"), "--count", "1", "--resolution", "64x32", "--cars",
+                   str(car), "--car-rules", "auto", "--quiet", check=False)
+    _one_line_error(proc, "outside the model's folder")
+    proc = run_gen("label-parts", str(car), "--out", str(tmp_path / "r.toml"), "--forward", "+Z", "--up", "-Z",
+                   check=False)
+    _one_line_error(proc, "the two axes must differ")
+    assert not (tmp_path / "r.toml").exists()

@@ -40,30 +40,19 @@ def set_identity(root: Path) -> dict:
 def check_ready(root: Path, option: str) -> None:
     """Refuse a dataset that a generator is still writing or that stopped short of its count:
     training would see only the samples that happened to be there."""
-    import errno
-    import fcntl
-
-    from blender_gen.dataset import LOCK_NAME, read_info, read_manifest
+    from blender_gen.dataset import lock_holder, read_info, read_manifest
 
     root = Path(root)
     if not (root / "dataset.json").exists():
         return
-    lock = root / LOCK_NAME
-    if lock.exists():
-        fd = os.open(lock, os.O_RDONLY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-                raise
-            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
-            raise DatasetError(f"{option} {root} is being written by {holder}; train once it has finished") from None
-        finally:
-            os.close(fd)
+    holder = lock_holder(root)
+    if holder is not None:
+        raise DatasetError(f"{option} {root} is being written by {holder}; train once it has finished")
     info = read_info(root)
     n = len(read_manifest(root / "manifest.jsonl"))
     wanted = info.get("count_requested", n)
-    if info.get("complete") is False or n < wanted:
+    # a shard's count_requested is the whole set's; its own `complete` says whether its part is done
+    if info.get("complete") is False or (info.get("complete") is None and n < wanted):
         raise DatasetError(f"{option} {root}: incomplete ({n} of {wanted} samples); rerun its generator to finish "
                            "it (it resumes), then train")
 

@@ -41,10 +41,16 @@ def _rotation(forward: str, up: str) -> np.ndarray:
 
 def model_files(path: str | Path) -> list[Path]:
     """A car's files: one model file, or several joined by '+' (a body and its wheels)."""
+    from ..recipe import companion_files
+
     files = split_car(path)
     for f in files:
         if not f.is_file():
             raise RulesError(f"--cars {f}: no such model file")
+        try:
+            companion_files(f)  # before Blender's importer could read a file outside the model's folder
+        except ValueError as exc:
+            raise RulesError(str(exc)) from None
     return files
 
 
