@@ -352,9 +352,6 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
     proposed rules are re-applied and their agreement with the inference printed.
     `--car-rules auto` on the other commands uses the same inference on the fly.
     """
-    from .cars.labeller import preview as draw_preview
-    from .cars.rules import RulesError
-
     tokens = check_cars(models, "auto")
     several = len(tokens) > 1
     if several and out.suffix:
@@ -383,9 +380,23 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
             if path is not None and path.exists() and not force:
                 _fail(f"{path}: exists; pass --force to overwrite")
         targets.append((token, name, rules_path, png))
-    from .cars.importer import model_files
+    import signal
+
+    import bpy  # noqa: F401  (importing it takes over SIGINT below Python: Ctrl-C was ignored)
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # so that one Ctrl-C stops the command
+    try:
+        _label_targets(targets, forward, up, length)
+    except KeyboardInterrupt:
+        click.echo("interrupted: the rules files not yet written are not written", err=True)
+        sys.exit(130)
+
+
+def _label_targets(targets: list, forward: str | None, up: str | None, length: float) -> None:
     from .cars.faces import read_car
-    from .cars.labeller import infer, propose_rules, rules_reproduce
+    from .cars.importer import model_files
+    from .cars.labeller import infer, preview as draw_preview, propose_rules, rules_reproduce
+    from .cars.rules import RulesError
     from .dataset import atomic_target
 
     for token, name, rules_path, png in targets:

@@ -284,3 +284,21 @@ def test_rules_limited_by_facing(tmp_path):
     path.write_text('[[rule]]\nmatch = "object"\npattern = "*"\nfacing = "below"\npart = "body"\n')
     with pytest.raises(Exception, match=r"rule #1: facing must be one of \['up', 'down', 'side'\], got 'below'"):
         load_rules(path)
+
+
+@pytest.mark.skipif(not (ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf").is_file(),
+                    reason="needs ../shared/assets")
+def test_one_ctrl_c_stops_label_parts_with_130_and_no_rules(tmp_path):
+    import signal
+    import time
+
+    model = ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf"  # about 15 s of labelling
+    out = tmp_path / "beetle.toml"
+    proc = subprocess.Popen([sys.executable, "-c", "from blender_gen.cli import main; main()", "label-parts",
+                             str(model), "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    time.sleep(4)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert not out.exists()
