@@ -28,6 +28,7 @@ from .config import Config, ConfigError, config_from_dict, unread_sections
 from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
                    set_identity)
 from .model import build_model
+from .model_card import write_model_card
 from .probe import EMA_PREFIX, evaluate_probe, pixel_prior, probe_plot
 from .run_folder import RunFolder
 
@@ -508,6 +509,7 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     def checkpoint(step: int) -> None:
         if dd.main:
             save_checkpoint(ckpt_dir, step, model, optimizers, schedulers, keep=cfg.run.keep_checkpoints, ema=ema)
+            write_model_card(run, cfg, opts, model, step)
         if dd.world > 1:
             dist.barrier()
 

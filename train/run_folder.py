@@ -5,6 +5,7 @@
   events.out.tfevents.*   the same scalars for TensorBoard
   grids/step_XXXXXXXX.png sample grids at fixed inputs
   checkpoints/            safetensors weights + JSON state (train.checkpoint)
+  MODEL_CARD.md           what the newest weights are, were trained on and scored (train.model_card)
 
 Training, inference and the report read a run only through this type.
 """
