@@ -402,9 +402,12 @@ def _label_targets(targets: list, forward: str | None, up: str | None, length: f
     for token, name, rules_path, png in targets:
         with one_line_errors():
             table, placed = read_car(model_files(token), forward, up)
+            try:
+                lab = infer(table, forward=forward, up=up)
+            except RulesError as exc:
+                raise RulesError(f"{token}: {exc}") from None
         for line in placed:
             click.echo(f"{name}: placed {line}")
-        lab = infer(table, forward=forward, up=up)
         areas = table.areas()
         text = propose_rules(table, lab, split_car(token)[0].name, length=length)
         rules_path.parent.mkdir(parents=True, exist_ok=True)

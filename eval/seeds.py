@@ -135,9 +135,13 @@ def read_results(path: Path) -> dict:
     the file when it is missing or not JSON."""
     f = _results_file(path)
     try:
-        return json.loads(f.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        data = json.loads(f.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{f}: cannot read a report's results.json ({exc})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("runs", []), list) or \
+            not all(isinstance(r, dict) for r in data.get("runs", []) + data.get("references", [])):
+        raise ValueError(f"{f}: not a report's results.json (expected an object with a list of runs)")
+    return data
 
 
 def merge(parts: list[Path]) -> dict:

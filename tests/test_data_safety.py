@@ -314,3 +314,18 @@ def test_label_parts_refuses_parallel_axes_and_models_reading_outside_their_fold
                    check=False)
     _one_line_error(proc, "the two axes must differ")
     assert not (tmp_path / "r.toml").exists()
+
+
+def test_degenerate_models_and_malformed_results_are_one_line_errors(tmp_path):
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "same.obj").write_text("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n")
+    for name in ("tri", "same"):
+        proc = run_gen("label-parts", str(tmp_path / f"{name}.obj"), "--out", str(tmp_path / f"{name}.toml"),
+                       check=False)
+        _one_line_error(proc, f"{name}.obj", "too few or degenerate to be a car")
+        assert not (tmp_path / f"{name}.toml").exists()
+    (tmp_path / "results.json").write_text("[1, 2]")
+    for args in (["seeds", str(tmp_path / "results.json")],
+                 ["merge", str(tmp_path / "results.json"), "--out", str(tmp_path / "j.json")]):
+        proc = subprocess.run([sys.executable, "-m", "eval.cli", *args], cwd=ROOT, capture_output=True, text=True)
+        _one_line_error(proc, "not a report's results.json")

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .rules import AXES, FACING_COS, face_normals
+from .rules import AXES, FACING_COS, RulesError, face_normals
 
 LABELLER_VERSION = 3
 FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
@@ -204,10 +204,17 @@ def infer_forward(pts: np.ndarray, areas: np.ndarray, colour: np.ndarray, groups
     return 0.0
 
 
+MIN_FACES = 12  # fewer cannot form a body with wheels
+
+
 def infer(table, forward: str | None = None, up: str | None = None) -> Labelling:
     """Parts for every face of a FaceTable (see the module docstring)."""
     tris, areas = table.tris, table.areas()
     n = len(tris)
+    ext = np.ptp(tris.reshape(-1, 3), axis=0) if n else np.zeros(3)
+    if n < MIN_FACES or np.sort(ext)[1] <= 1e-6 or not np.isfinite(areas).all() or areas.sum() <= 0:
+        raise RulesError(f"{n} faces spanning {' x '.join(f'{e:.3g}' for e in ext)} (total area {areas.sum():.3g}): "
+                         f"too few or degenerate to be a car (at least {MIN_FACES} faces with a 3-D extent)")
     warnings: list[str] = []
     groups = _colour_groups(table.colour, table.uv)  # used by the lamps (forward) and the colour stage
     if up is None:  # the wheels are at the bottom; failing named wheels, the car narrows upwards
