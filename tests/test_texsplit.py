@@ -21,7 +21,7 @@ def _one(uv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_uniform_texture_and_small_triangles_are_left_whole():
     img = np.full((64, 64, 3), 0.7, np.float32)
     pos, nrm, uv = _one([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    p, n, u, src = split_by_texture(pos, nrm, uv, img)
+    p, n, u, src, _ = split_by_texture(pos, nrm, uv, img)
     assert len(p) == 1 and (src == 0).all() and np.array_equal(p, pos)
     img[:, 32:] = 0.0  # an edge, but under a triangle of fewer texels than the limit
     side = np.sqrt(2 * MIN_TEXELS * 0.5) / 64
@@ -33,7 +33,7 @@ def test_pieces_follow_the_edge_and_tile_the_triangle():
     img = np.full((64, 64, 3), 0.9, np.float32)
     img[:, :24] = 0.05  # black left of u = 0.375
     pos, nrm, uv = _one([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    p, n, u, src = split_by_texture(pos, nrm, uv, img)
+    p, n, u, src, _ = split_by_texture(pos, nrm, uv, img)
     assert len(p) > 16 and (src == 0).all()
     assert np.isclose(_area(p).sum(), _area(pos).sum())  # the pieces tile the triangle
     assert np.allclose(np.linalg.norm(n, axis=-1), 1.0)
@@ -78,7 +78,7 @@ def _painted_box_car(split: bool, lower=None):
     fn = face_normals(tris)
     nrm = np.repeat(fn[:, None], 3, axis=1)
     if split:
-        tris, nrm, uvs, _ = split_by_texture(tris, nrm, uvs, img)
+        tris, nrm, uvs, _, _ = split_by_texture(tris, nrm, uvs, img)
     uv = uvs.mean(1)
     n = len(tris)
     table = FaceTable(tris=tris, normals=nrm, objects=np.full(n, "body", dtype=object),
@@ -114,3 +114,16 @@ def test_a_light_paints_baked_shading_is_paint_and_tinted_plastic_is_bumpers():
         side_low = (np.abs(face_normals(table.tris)[:, 1]) > 0.9) & (z < 0.6)
         areas = table.areas()
         assert agreement(lab.labels[side_low], np.full(side_low.sum(), part, dtype=object), areas[side_low]) > 0.9, lower
+
+
+def test_a_noise_texture_cannot_split_without_bound():
+    rng = np.random.default_rng(0)
+    img = rng.random((1024, 1024, 3))  # every texel another colour
+    n = 200
+    corners = rng.random((n, 3, 2))
+    pos = np.concatenate([corners, np.zeros((n, 3, 1))], axis=-1)
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 3, 1))
+    p, _, _, src, capped = split_by_texture(pos, nrm, corners, img, max_pieces=20_000)
+    assert capped and len(p) <= 20_000 and set(src) == set(range(n))  # every source kept, fewer pieces
+    _, _, _, _, capped = split_by_texture(pos[:2], nrm[:2], corners[:2], np.zeros((8, 8, 3)))
+    assert not capped

@@ -8,6 +8,7 @@ so a rules file and `--car-rules auto` see exactly the same faces.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import bpy
@@ -17,7 +18,7 @@ from ..cli_errors import first_line
 from ..quiet import quiet_stdout
 from .labeller import FaceTable, infer, named_part
 from .rules import MODEL_SUFFIXES, RulesError, base_name
-from .texsplit import MAX_DEPTH, NAMED_DEPTH, sample, split_by_texture
+from .texsplit import MAX_DEPTH, MAX_PIECES, NAMED_DEPTH, sample, split_by_texture
 from .wheels import place_wheel_files, take
 
 BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
@@ -258,7 +259,10 @@ def _cut_textured(pos: np.ndarray, nrm: np.ndarray, cuv: np.ndarray, uv: np.ndar
             # where a name decides the part (wheels, glass) only a little: enough to tell a wheel's
             # tyre from its rim, not to follow its tread
             depth = NAMED_DEPTH if named_part(obj_name, info["name"]) else MAX_DEPTH
-            p, n, u, src = split_by_texture(pos[sel], nrm[sel], cuv[sel], info["image"], depth)
+            p, n, u, src, capped = split_by_texture(pos[sel], nrm[sel], cuv[sel], info["image"], depth)
+            if capped:
+                print(f"warning: {obj_name}: the texture of material {info['name']!r} varies too finely to follow; "
+                      f"its faces were split less ({len(p)} pieces, at most {MAX_PIECES})", file=sys.stderr)
             out_p.append(p), out_n.append(n), out_uv.append(u), out_src.append(sel[src])
     src = np.concatenate(out_src)
     order = np.argsort(src, kind="stable")

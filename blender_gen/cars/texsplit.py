@@ -17,6 +17,9 @@ MIN_TEXELS = 24.0  # a piece covering fewer texels than this is not split furthe
 CONTRAST = 0.3  # sRGB range (largest channel) within a piece above which it is split
 MAX_DEPTH = 5  # at most 4**5 pieces per authored triangle
 NAMED_DEPTH = 2  # for faces whose name decides their part (wheels, glass): tyre from rim, not the tread
+# at most this many pieces per call: a noise texture over a fine mesh would otherwise split every
+# triangle to the full depth (2,000 triangles under 1024x1024 noise: 2 million faces, 5.6 GB)
+MAX_PIECES = 200_000
 
 # barycentric sample points: near the corners, the edge midpoints, the centre and between
 _B = np.array([[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8], [0.45, 0.45, 0.1], [0.1, 0.45, 0.45],
@@ -53,14 +56,20 @@ def _split4(a: np.ndarray) -> np.ndarray:
 
 
 def split_by_texture(pos: np.ndarray, nrm: np.ndarray, cuv: np.ndarray, img: np.ndarray,
-                     max_depth: int = MAX_DEPTH) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                     max_depth: int = MAX_DEPTH, max_pieces: int = MAX_PIECES
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
     """Triangles (n, 3, 3) positions, corner normals and (n, 3, 2) corner UVs over an image ->
     the same for the pieces, plus each piece's source triangle index (pieces of one source are
-    adjacent and in a fixed order; a source left whole is one piece)."""
+    adjacent and in a fixed order; a source left whole is one piece), and whether splitting stopped
+    early at the level that would have exceeded `max_pieces`."""
     src = np.arange(len(pos))
     keep_p, keep_n, keep_uv, keep_src = [], [], [], []
+    kept, capped = 0, False
     for level in range(max_depth + 1):
         split = _mixed(cuv, img) if level < max_depth else np.zeros(len(cuv), bool)
+        if kept + (~split).sum() + 4 * split.sum() > max_pieces and split.any():
+            split, capped = np.zeros(len(cuv), bool), True
+        kept += int((~split).sum())
         keep_p.append(pos[~split]), keep_n.append(nrm[~split]), keep_uv.append(cuv[~split]), keep_src.append(src[~split])
         if not split.any():
             break
@@ -69,4 +78,5 @@ def split_by_texture(pos: np.ndarray, nrm: np.ndarray, cuv: np.ndarray, img: np.
         nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-12)
     src = np.concatenate(keep_src)
     order = np.argsort(src, kind="stable")
-    return (np.concatenate(keep_p)[order], np.concatenate(keep_n)[order], np.concatenate(keep_uv)[order], src[order])
+    return (np.concatenate(keep_p)[order], np.concatenate(keep_n)[order], np.concatenate(keep_uv)[order], src[order],
+            capped)
