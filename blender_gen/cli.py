@@ -94,6 +94,8 @@ def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
         if Path(token).suffix.lower() in MODEL_SUFFIXES or "/" in token:
             # one car in several files: BODY+WHEELS (a file whose own name holds '+' is taken whole)
             files = split_car(token)
+            if len({p.resolve() for p in files}) < len(files):
+                _fail(f"--cars {token}: a file named twice in one car (its faces would be doubled)")
             for p in files:
                 if not p.is_file():
                     _fail(f"--cars {token}: no such model file {p}")

@@ -204,7 +204,7 @@ def _table(parts: list[tuple[np.ndarray, str]]):
 
 
 def test_wheel_files_modelled_at_the_origin_go_into_the_arches_and_are_mirrored():
-    """Issue 18.4: a body plus wheel files authored at the origin (MetaDrive's Beetle) loads as one
+    """A body plus wheel files authored at the origin (MetaDrive's Beetle) loads as one
     car: each wheel in the arch its name says, mirrored to the other side, all on one axle height."""
     from blender_gen.cars.rules import RulesError
     from blender_gen.cars.wheels import find_arches, place_wheel_files
@@ -302,3 +302,16 @@ def test_one_ctrl_c_stops_label_parts_with_130_and_no_rules(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
     assert not out.exists()
+
+
+@pytest.mark.skipif(not (ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf").is_file(),
+                    reason="needs ../shared/assets")
+def test_a_car_in_several_files_takes_the_body_first_and_each_file_once(tmp_path):
+    beetle = ASSETS / "cars3d_cc_by" / "metadrive" / "beetle"
+    cli = [sys.executable, "-c", "from blender_gen.cli import main; main()", "label-parts"]
+    for token, message in ((f"{beetle / 'right_tire_front.gltf'}+{beetle / 'vehicle.gltf'}", "the body comes first"),
+                           (f"{beetle / 'vehicle.gltf'}+{beetle / 'vehicle.gltf'}", "a file named twice")):
+        proc = subprocess.run(cli + [token, "--out", str(tmp_path / "r.toml")], capture_output=True, text=True,
+                              cwd=ROOT)
+        assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert not (tmp_path / "r.toml").exists()

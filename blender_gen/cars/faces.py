@@ -128,6 +128,16 @@ def read_car(paths: list[Path], forward: str | None = None, up: str | None = Non
     body = np.nonzero(file_index == 0)[0]
     if len(body) == 0:
         raise RulesError(f"{paths[0]}: the body file (the first of '+') has no mesh faces")
+    sizes = []
+    for k, p in enumerate(paths):
+        own = table.tris[file_index == k].reshape(-1, 3)
+        if len(own) == 0:
+            raise RulesError(f"{p}: a wheel file (after '+') with no mesh faces")
+        sizes.append(float(np.prod(np.ptp(own, axis=0) + 1e-9)))
+    if max(sizes[1:]) > sizes[0]:
+        big = paths[1 + int(np.argmax(sizes[1:]))]
+        raise RulesError(f"{'+'.join(str(p) for p in paths)}: {big} is larger than the first file, {paths[0]}; the "
+                         "body comes first, then its wheel files")
     if forward is None or up is None:
         lab = infer(take(table, body), forward=forward, up=up)
         forward, up = lab.forward, lab.up
