@@ -65,8 +65,9 @@ def test_nan_in_a_sample_names_the_sample(tmp_path, trained):
     assert render.returncode == 1 and "000002.exr: layer 'normal' holds NaN" in render.stderr
 
 
-def test_decompose_of_a_bomb_image_leaves_no_half_written_out(tmp_path, trained):
-    """Issue 19.10: a decompression-bomb photo mid-way was a traceback and left a partial --out."""
+def test_decompose_skips_a_bomb_image_and_writes_the_others_whole(tmp_path, trained):
+    """A decompression-bomb photo among good ones: named and skipped (exit 1), no traceback, and
+    the other photos' predictions written as a complete set that records the skipped one."""
     from PIL import Image
 
     run, _, clean = trained
@@ -76,4 +77,7 @@ def test_decompose_of_a_bomb_image_leaves_no_half_written_out(tmp_path, trained)
     out = tmp_path / "pred"
     bad = _train("decompose", "--run", str(run), "--images", str(photos), "--out", str(out), "--quiet")
     assert bad.returncode == 1 and "zz_bomb.png" in bad.stderr and "Traceback" not in bad.stderr
-    assert not out.exists()
+    info = json.loads((out / "dataset.json").read_text())
+    n = len(list(clean.iterdir()))
+    assert info["complete"] and info["count"] == n and info["skipped"][0]["file"].endswith("zz_bomb.png")
+    assert not list((out / "photos").glob("zz_bomb*"))

@@ -185,6 +185,8 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
                  np.concatenate([preview_srgb8(k, layers[k]) for k in INTRINSIC_LAYERS], axis=1))
         writer.add(i, layers, source=reals.source_name(i), photo=name)
         done.append((name, str(Path(path).relative_to(images) if Path(images).is_dir() else Path(path).name)))
+    if not done:  # nothing to show: no folder that looks like a result
+        raise DatasetError(f"--images {images}: none of its {n} photo(s) could be read ({skipped[0]['reason']})")
     write_gallery(gallery, done, f"H's decompositions of {Path(images).name}")
     writer.info.update(skipped=skipped, count_requested=n - len(skipped))
     writer.finish()
