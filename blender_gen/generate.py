@@ -303,14 +303,15 @@ def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
     out = Path(out)
     if out.exists() and not folder_is_empty(out):
         raise GenerationError(f"merge: --out {out} is not empty")
-    for s in shards:  # before --out exists: a refused merge leaves nothing that refuses the rerun
-        holder = lock_holder(s)
-        if holder is not None:
-            raise GenerationError(f"merge: {s} is being written by {holder}; merge once its generator has finished")
-        if read_info(s).get("complete") is False:
-            raise GenerationError(f"merge: {s} is incomplete (its generator stopped early); rerun it to finish, "
-                                  "then merge")
     with locked_folder(out):
+        for s in shards:  # before anything is written: a refused merge leaves nothing that refuses the rerun
+            holder = lock_holder(s)
+            if holder is not None:
+                raise GenerationError(f"merge: {s} is being written by {holder}; merge once its generator has "
+                                      "finished")
+            if read_info(s).get("complete") is False:
+                raise GenerationError(f"merge: {s} is incomplete (its generator stopped early); rerun it to finish, "
+                                      "then merge")
         return _merge_locked(out, shards, progress)
 
 

@@ -292,12 +292,14 @@ def test_merge_refuses_a_shard_being_written_or_stopped_early_and_leaves_no_out(
     with locked_folder(shard):
         proc = run_gen("merge", "--out", str(tmp_path / "m"), str(shard), "--quiet", check=False)
     _one_line_error(proc, "is being written by pid")
-    assert not (tmp_path / "m").exists()
     info = json.loads((shard / "dataset.json").read_text())
     (shard / "dataset.json").write_text(json.dumps({**info, "complete": False}))
     proc = run_gen("merge", "--out", str(tmp_path / "m"), str(shard), "--quiet", check=False)
     _one_line_error(proc, "is incomplete")
-    assert not (tmp_path / "m").exists()
+    assert [p.name for p in (tmp_path / "m").iterdir()] == [".lock"]  # nothing that would refuse the rerun
+    (shard / "dataset.json").write_text(json.dumps(info))
+    run_gen("merge", "--out", str(tmp_path / "m"), str(shard), "--quiet")
+    assert len(open_dataset(tmp_path / "m")) == 2
 
 
 def test_label_parts_refuses_parallel_axes_and_models_reading_outside_their_folder(tmp_path):
