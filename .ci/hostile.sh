@@ -165,8 +165,8 @@ case_ "11 a video in a read-only folder: one line naming why, before any frame" 
 
 echo "== 12 planning and progress"
 case_ "12 reproduce --dry-run --jobs 100 caps the jobs" 0 "job" -- iae-eval reproduce --budget cpu --dry-run --jobs 100 --out "$W/r2"
-case_ "12 --resolution 30x50 refused before any data" "1|2" "multiples of" -- \
-  iae-eval reproduce --budget smoke --resolution 30x50 --out "$W/r3"
+case_ "12 --resolution 50x30 (width x height) refused before any data" "1|2" "multiples of" -- \
+  iae-eval reproduce --budget smoke --resolution 50x30 --out "$W/r3"
 check "12 ... and nothing generated" test ! -e "$W/r3/data"
 
 echo "== 13 no CUDA probe warning"
