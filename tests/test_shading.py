@@ -211,7 +211,7 @@ def test_lighting_fitted_to_an_image_renders_it_and_fills_the_bank():
     on = masks.expand(-1, 3, -1, -1) > 0
     assert (again - image).abs()[on].mean() < 0.02
     # the model: R(H(I_r)) is lit by the fit, R(M_s) by a drawn real lighting, the bank keeps the last ones
-    cfg = load_config("cpu-small", tiny_overrides() + ["model.lighting_bank=4"])
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.lighting_bank=4"])
     model = build_model(cfg).train()
     r = model.R
     assert int(r.bank_filled) == 0 and r.draw(2) is None
@@ -304,13 +304,14 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
     assert gain.shape == (3, 3) and torch.allclose(gain, true_gain.expand(3, 3))
     again = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], light_fit, gain)) * 2 - 1
     assert (again - image).abs()[masks.expand(-1, 3, -1, -1) > 0].mean() < 0.02
-    cfg = load_config("cpu-small", tiny_overrides() + ["model.shader_gain=shared", "model.shader_gain_start=0.2"])
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.shader_gain=shared",
+                                                       "model.shader_gain_start=0.2"])
     model = build_model(cfg)
     assert torch.allclose(model.R.shared_gain(), torch.full((3,), 0.2))
     out = model.R(stacks)
     out.mean().backward()
     assert model.R.log_gain.grad is not None and model.R.log_gain.grad.abs().sum() > 0
-    plain = build_model(load_config("cpu-small", tiny_overrides()))
+    plain = build_model(load_config("cpu-small", tiny_overrides() + ["model.renderer=shader"]))
     assert plain.R.shared_gain() is None and "R.log_gain" not in plain.state_dict()  # older checkpoints still load
     with pytest.raises(ConfigError, match="model.shader_gain_start"):
         load_config("cpu-small", tiny_overrides() + ["model.shader_gain_start=nan"])

@@ -44,7 +44,8 @@ def test_network_shapes(h, w):
     assert Decomposer(8, 2, 5)(x3).shape == (2, 9, h, w)
     outs = MultiscaleDiscriminator(9, 8, 3, 2)(x9)
     assert len(outs) == 2 and outs[0].shape[:2] == (2, 1) and outs[1].shape[-1] < outs[0].shape[-1]
-    cfg = tiny_cfg(data__height=h, data__width=w, model__inputs="NA", model__shader_residual=0.25)
+    cfg = tiny_cfg(data__height=h, data__width=w, model__inputs="NA", model__renderer="shader",
+                   model__shader_residual=0.25)
     model = IntrinsicAutoencoder(cfg)
     out = model.forward_all(x9.tanh(), x3.tanh())
     assert out["fake_I"].shape == (2, 3, h, w) and out["fake_M"].shape == (2, 9, h, w)
