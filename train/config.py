@@ -52,8 +52,8 @@ class ModelConfig:
     # the background, so R's shading follows the normals from the first step and H learns to read
     # normals from shading. Measured (docs/normals_from_shading.md), with w_shading_ren/dec = 3: S0 (masked,
     # analytic shading) normals 38.1 -> 26.4 / 27.8 / 30.1 deg on three seeds; but on the `cpu` protocol (real
-    # images with backgrounds) 47.7 / 47.9 deg at step 3328 on two seeds, against 41.0 for the previous
-    # objective, albedo 68.7 / 68.5 against 45.3, speckle 3.4-3.6: so the default stays the paper's R.
+    # images with backgrounds) 48.6 / 49.3 deg at step 5000 on two seeds against the previous objective's
+    # 39.9 / 38.2, albedo 74.1 / 72.8 against 39.7 / 46.5, speckle 3.6-3.9: so the default is the paper's R.
     renderer: str = "net"
     # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
     # agree on a hidden code (S0 normals 27 -> 36 deg, speckle x2); one on the background only gave H a
