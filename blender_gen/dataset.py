@@ -371,15 +371,23 @@ def lock_holder(root: Path) -> str | None:
         return None
     fd = os.open(path, os.O_RDONLY)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-                raise
-            return os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
-        return None
+        return _try_lock(fd, fcntl.LOCK_SH)
     finally:
         os.close(fd)
+
+
+def _try_lock(fd: int, mode: int) -> str | None:
+    """Take `mode` on the lock file `fd` without waiting: None when taken, else who holds it (the
+    holder's line in the file)."""
+    import fcntl
+
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+            raise
+        return os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+    return None
 
 
 @contextmanager
@@ -398,18 +406,14 @@ def locked_folder(root: Path, option: str = "--out", wait: Callable[[str], None]
     path = root / LOCK_NAME
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-                raise
-            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+        holder = _try_lock(fd, fcntl.LOCK_EX)
+        if holder is not None:
             if wait is not None:
                 wait(holder)
                 fcntl.flock(fd, fcntl.LOCK_EX)
             else:
                 raise DatasetError(f"{option} {root} is being written by {holder}; wait for it to finish or "
-                                   "choose another folder") from None
+                                   "choose another folder")
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since "
                       f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)

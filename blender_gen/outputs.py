@@ -20,9 +20,9 @@ class OutputRefused(ValueError):
 
 
 def protected_folder(path: Path) -> tuple[str, Path] | None:
-    """('run' | 'dataset', folder) when `path` lies inside a run or dataset folder, else None."""
+    """('run' | 'dataset', folder) when `path` is or lies inside a run or dataset folder, else None."""
     path = Path(path).resolve()
-    for folder in [path.parent, *path.parent.parents]:
+    for folder in [path, *path.parents]:
         if (folder / RUN_MARKER).exists():
             return "run", folder
         if (folder / DATASET_MARKER).exists():
@@ -55,7 +55,7 @@ def refuse_output(out: Path, option: str, force: bool = False) -> Path:
 def refuse_output_folder(out: Path, option: str) -> Path:
     """An output folder (grids, previews) must not lie inside a run or dataset folder."""
     out = Path(out)
-    inside = protected_folder(out / "x")
+    inside = protected_folder(out)
     if inside is not None:
         raise OutputRefused(f"{option} {out}: inside the {inside[0]} folder {inside[1]}; write it elsewhere")
     return out

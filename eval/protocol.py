@@ -11,13 +11,12 @@ is an overlap: it is refused. Shared car models or environments are allowed but 
 """
 from __future__ import annotations
 
-import hashlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from blender_gen.dataset import DatasetError, open_dataset
-from train.data import image_files
+from train.data import set_identity
 
 # Recipe fields that do not change which car, paint, environment and camera a sample shows.
 _NOT_SAMPLE_FIELDS = {"kind", "samples", "width", "height", "background"}
@@ -51,11 +50,8 @@ def describe(role: str, root: Path) -> SetInfo:
     if not (root / "dataset.json").exists():
         if not root.is_dir():
             raise DatasetError(f"{role} {root}: no such dataset or image folder")
-        files = image_files(root)
-        digest = hashlib.sha256()
-        for f in files:  # names and sizes: hashing every photo's bytes would cost more than the report
-            digest.update(f"{f.relative_to(root)}\0{f.stat().st_size}\n".encode())
-        return SetInfo(role, root, "images", len(files), identity={"manifest_sha256": digest.hexdigest()})
+        identity = set_identity(root)  # names and sizes, as a run records its photo folder
+        return SetInfo(role, root, "images", identity["count"], identity=identity)
     ds = open_dataset(root)
     recipe = ds.info.get("recipe") or {}
     key = {k: v for k, v in recipe.items() if k not in _NOT_SAMPLE_FIELDS}

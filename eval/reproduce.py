@@ -215,14 +215,10 @@ class Plan:
     def steps_done(self, name: str) -> int:
         """The step of run `name`'s newest readable checkpoint in this plan's output (0: none):
         a rerun resumes there, so only the steps after it take time."""
-        from train.checkpoint import CheckpointUnreadable, checkpoint_files, read_state
+        from train.checkpoint import newest_state
 
-        for path in checkpoint_files(self.out / "runs" / name / "checkpoints"):
-            try:
-                return int(read_state(path)["step"])
-            except CheckpointUnreadable:  # the trainer falls back to the next older one too
-                continue
-        return 0
+        newest = newest_state(self.out / "runs" / name / "checkpoints")  # as the trainer falls back
+        return 0 if newest is None else newest[1]
 
     def steps_left(self, name: str) -> int:
         return max(0, self.budget.steps - self.steps_done(name))

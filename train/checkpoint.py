@@ -86,6 +86,17 @@ def latest_checkpoint(folder: Path) -> Path | None:
     return files[0] if files else None
 
 
+def newest_state(folder: Path) -> tuple[Path, int] | None:
+    """The newest checkpoint whose JSON state reads, and its step (the one a resume falls back to
+    when newer ones are unreadable); None if there is none."""
+    for path in checkpoint_files(folder):
+        try:
+            return path, int(read_state(path)["step"])
+        except CheckpointUnreadable:
+            continue
+    return None
+
+
 def read_state(path: Path) -> dict:
     """The JSON state beside a checkpoint's tensors."""
     state_path = Path(path).with_suffix(".json")

@@ -62,7 +62,7 @@ def image_files(root: Path) -> list[Path]:
     return sorted(p for p in Path(root).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def _resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
+def resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """(C, H, W) -> (C, h, w); area averaging when shrinking, bilinear when growing."""
     if t.shape[1:] == (h, w):
         return t
@@ -81,7 +81,7 @@ def cover_crop(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
     if (H, W) == (h, w):
         return t
     scale = max(h / H, w / W)
-    t = _resize(t, max(h, round(H * scale)), max(w, round(W * scale)))
+    t = resize(t, max(h, round(H * scale)), max(w, round(W * scale)))
     top, left = (t.shape[1] - h) // 2, (t.shape[2] - w) // 2
     return t[:, top:top + h, left:left + w].contiguous()
 

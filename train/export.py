@@ -9,8 +9,6 @@ corrupt one with a one-line error and compares it with PyTorch's output.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path

@@ -156,8 +156,8 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
     dataset's EXR sample is the training-size centre crop of those maps (what the dataset format
     and the scorer read); photos/ holds the maps at the photo's size, named after it, and a
     labelled panel per photo. An unreadable photo is skipped and named; the others go on."""
-    from .data import cover_crop
-    from .photos import network_size, photo_name, write_gallery, write_photo_outputs
+    from .data import cover_crop, resize
+    from .photos import network_size, output_size, photo_name, write_gallery, write_photo_outputs
 
     gallery = out / "photos"
     gallery.mkdir()
@@ -171,14 +171,13 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
             tqdm.write(f"skipped: {exc}", file=sys.stderr)
             continue
         hn, wn = network_size(*photo.shape[-2:], cfg.data.height, cfg.data.width)
-        img = F.interpolate(photo[None], size=(hn, wn), mode="area" if hn <= photo.shape[1] else "bilinear",
-                            **({} if hn <= photo.shape[1] else {"align_corners": False})).to(device)
+        img = resize(photo, hn, wn)[None].to(device)
         maps = model.decompose(img).float()
         rerender = model.reconstruct(img, maps) if hasattr(model, "reconstruct") else model.render(maps)
         name = photo_name(path, Path(images))
-        write_photo_outputs(gallery, name, photo, maps[0].cpu(), rerender[0].cpu())
-        crop = cover_crop(F.interpolate(maps, size=photo.shape[-2:], mode="bilinear", align_corners=False)[0],
-                          cfg.data.height, cfg.data.width)
+        full = resize(maps[0].cpu(), *output_size(*photo.shape[-2:]))  # once, for the pictures and the crop
+        write_photo_outputs(gallery, name, photo, full, rerender[0].cpu())
+        crop = cover_crop(full, cfg.data.height, cfg.data.width)
         arr = crop.permute(1, 2, 0).cpu().numpy()
         layers = {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(INTRINSIC_LAYERS)}
         save_png(out / "previews" / f"{i:06d}.png",

@@ -22,8 +22,8 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
-from .checkpoint import (CheckpointError, checkpoint_files, latest_checkpoint, load_ema, load_newest, load_weights,
-                         read_state, save_checkpoint)
+from .checkpoint import (CheckpointError, latest_checkpoint, load_ema, load_newest, load_weights, newest_state,
+                         save_checkpoint)
 from .config import Config, ConfigError, config_from_dict, unread_sections
 from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
                    set_identity)
@@ -254,14 +254,12 @@ def _init_source(init_from: str) -> dict:
 
     src = RunFolder(Path(init_from))
     opts = src.options()  # NotARunError names the folder
-    for path in checkpoint_files(src.checkpoints):
-        try:
-            step = int(read_state(path)["step"])
-        except CheckpointError:
-            continue
-        return {"run": str(Path(init_from).resolve()), "config": opts["config"], "checkpoint": str(path.resolve()),
-                "checkpoint_sha256": sha256_file(path), "step": step}
-    raise ConfigError(f"--init-from {init_from}: no readable checkpoint to start from")
+    newest = newest_state(src.checkpoints)
+    if newest is None:
+        raise ConfigError(f"--init-from {init_from}: no readable checkpoint to start from")
+    path, step = newest
+    return {"run": str(Path(init_from).resolve()), "config": opts["config"], "checkpoint": str(path.resolve()),
+            "checkpoint_sha256": sha256_file(path), "step": step}
 
 
 def load_init(model: torch.nn.Module, ema: torch.nn.Module | None, init: dict) -> None:
@@ -280,8 +278,8 @@ def load_init(model: torch.nn.Module, ema: torch.nn.Module | None, init: dict) -
 
 
 def _newest_step(run: RunFolder) -> int | None:
-    newest = latest_checkpoint(run.checkpoints)
-    return None if newest is None else int(read_state(newest)["step"])
+    newest = newest_state(run.checkpoints)
+    return None if newest is None else newest[1]
 
 
 def check_data(cfg: Config, intrinsics: str, real: str) -> None:

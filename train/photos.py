@@ -19,6 +19,9 @@ from PIL import Image, ImageDraw
 
 from blender_gen.dataset import save_png
 
+from .data import resize
+from .loop import to_display
+
 SIDE_MULTIPLE = 16
 MAX_SIDE = 2048  # outputs larger than this are scaled down (a 24-megapixel photo's maps are not needed)
 PANEL_HEIGHT = 256
@@ -43,40 +46,24 @@ def photo_name(path: Path, root: Path) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", "__".join(rel.with_suffix("").parts))
 
 
-def resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """(N, C, H, W) -> (N, C, h, w): area averaging when shrinking, bilinear when growing."""
-    if t.shape[-2:] == (h, w):
-        return t
-    if h <= t.shape[-2] and w <= t.shape[-1]:
-        return F.interpolate(t, size=(h, w), mode="area")
-    return F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False)
-
-
-def display(t: torch.Tensor) -> np.ndarray:
-    """(3, H, W) network space -> uint8 HxWx3 (normals and sRGB both map [-1, 1] to [0, 1])."""
-    x = ((t.detach().float().clamp(-1, 1) + 1.0) * 0.5).permute(1, 2, 0).cpu().numpy()
-    return (x * 255.0 + 0.5).astype(np.uint8)
-
-
-def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, maps: torch.Tensor,
+def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, full: torch.Tensor,
                         rerender: torch.Tensor) -> Path:
-    """NAME_normal/_albedo/_reflection/_render.png at the photo's size (at most MAX_SIDE) and the
-    labelled panel NAME.png. `photo` (3, H, W), `maps` (9, h, w), `rerender` (3, h, w), network space."""
-    h, w = output_size(*photo.shape[-2:])
-    full = resize(maps[None].float(), h, w)[0]
-    full[0:3] = F.normalize(full[0:3], dim=0)  # interpolated normals are shorter than unit length
-    tiles = {"normal": full[0:3], "albedo": full[3:6], "reflection": full[6:9],
-             "render": resize(rerender[None].float(), h, w)[0]}
+    """NAME_normal/_albedo/_reflection/_render.png and the labelled panel NAME.png. `photo` (3, H, W),
+    `full`: H's maps (9, h, w) already at `output_size` of the photo, `rerender` (3, h', w'), network space."""
+    h, w = full.shape[-2:]
+    # interpolated normals are shorter than unit length: the picture shows them normalised
+    tiles = {"normal": F.normalize(full[0:3].float(), dim=0), "albedo": full[3:6].float(),
+             "reflection": full[6:9].float(), "render": resize(rerender.float(), h, w)}
     for key, t in tiles.items():
-        save_png(folder / f"{name}_{key}.png", display(t))
+        save_png(folder / f"{name}_{key}.png", to_display(t))
     ph = PANEL_HEIGHT
     pw = max(1, round(w * ph / h))
-    pictures = [resize(photo[None].float(), ph, pw)[0]] + [resize(t[None], ph, pw)[0] for t in tiles.values()]
+    pictures = [resize(photo.float(), ph, pw)] + [resize(t, ph, pw) for t in tiles.values()]
     sheet = Image.new("RGB", (pw * len(pictures), 18 + ph), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     for c, (label, t) in enumerate(zip(PANEL_LABELS, pictures)):
         draw.text((c * pw + 4, 3), label, fill=(0, 0, 0))
-        sheet.paste(Image.fromarray(display(t)), (c * pw, 18))
+        sheet.paste(Image.fromarray(to_display(t)), (c * pw, 18))
     panel = folder / f"{name}.png"
     save_png(panel, np.asarray(sheet))
     return panel
