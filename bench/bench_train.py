@@ -2,6 +2,8 @@
 
 Each model configuration runs in its own process so its peak RSS is its own. Prints
 measured figures; nothing is asserted. Usage: python bench/bench_train.py
+On a GPU: python bench/bench_train.py --device cuda --size 512x256 --kinds iae cyclegan munit
+(float32 weights and activations, as bench/objective_sweep.py trains; peak GPU memory is reported).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ WIDTHS = {
 }
 
 
-def one(config: str, steps: int, h: int, w: int, kind: str) -> dict:
+def one(config: str, steps: int, h: int, w: int, kind: str, device: str = "cpu") -> dict:
     import torch
 
     from train.config import load_config
@@ -39,20 +41,28 @@ def one(config: str, steps: int, h: int, w: int, kind: str) -> dict:
     preset, extra = WIDTHS[(kind, config)]
     cfg = load_config(preset, [f"data.height={h}", f"data.width={w}", "data.batch_size=1", *extra])
     torch.manual_seed(0)
-    model = build_model(cfg)
+    model = build_model(cfg).to(device)
     g, d, opts, _ = build_optimisation(cfg, model)
     opt_g, opt_d = opts["G"], opts["D"]
-    m_s, i_r = torch.rand(1, 9, h, w) * 2 - 1, torch.rand(1, 3, h, w) * 2 - 1
-    out, _ = generator_step(model, opt_g, g, m_s, i_r)  # warm-up
-    discriminator_step(model, opt_d, d, out)
+    m_s, i_r = torch.rand(1, 9, h, w, device=device) * 2 - 1, torch.rand(1, 3, h, w, device=device) * 2 - 1
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    for _ in range(3 if device.startswith("cuda") else 1):  # warm-up (cuDNN picks its kernels)
+        out, _ = generator_step(model, opt_g, g, m_s, i_r)
+        discriminator_step(model, opt_d, d, out)
+    sync()
     t = time.perf_counter()
     for _ in range(steps):
         out, _ = generator_step(model, opt_g, g, m_s, i_r)
         discriminator_step(model, opt_d, d, out)
+    sync()
     dt = time.perf_counter() - t
-    return {"config": config, "kind": kind, "resolution": f"{h}x{w}", "batch": 1, "it_per_s": steps / dt,
-            "params_M": sum(p.numel() for p in model.parameters()) / 1e6,
-            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    r = {"config": config, "kind": kind, "resolution": f"{h}x{w}", "batch": 1, "device": device,
+         "it_per_s": steps / dt, "params_M": sum(p.numel() for p in model.parameters()) / 1e6,
+         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    if device.startswith("cuda"):
+        r["gpu"] = torch.cuda.get_device_name()
+        r["peak_gpu_mib"] = torch.cuda.max_memory_allocated() / 2**20
+    return r
 
 
 def loader(n_samples: int, workers: int) -> dict:
@@ -77,21 +87,26 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--one", nargs=5, metavar=("CONFIG", "STEPS", "H", "W", "KIND"))
     ap.add_argument("--kinds", nargs="+", default=["iae"])
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
+    ap.add_argument("--size", default="256x128", help="WIDTHxHEIGHT of the timed steps")
     args = ap.parse_args()
     if args.one:
         c, s, h, w, k = args.one
-        print(json.dumps(one(c, int(s), int(h), int(w), k)))
+        print(json.dumps(one(c, int(s), int(h), int(w), k, args.device)))
         return
+    w, h = args.size.split("x")
+    gpu = args.device.startswith("cuda")
     results = []
     for kind in args.kinds:
-        for config, steps in (("paper", 3), ("cpu-small", 20)):
-            proc = subprocess.run([sys.executable, __file__, "--one", config, str(steps), "128", "256", kind],
-                                  capture_output=True, text=True, cwd=ROOT, check=True)
+        for config, steps in (("paper", 50 if gpu else 3), ("cpu-small", 200 if gpu else 20)):
+            proc = subprocess.run([sys.executable, __file__, "--one", config, str(steps), h, w, kind,
+                                   "--device", args.device], capture_output=True, text=True, cwd=ROOT, check=True)
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             results.append(r)
-            print(f"train {kind:8s} {config:9s} widths, 128x256 batch 1: {r['it_per_s']:.2f} it/s, "
-                  f"{r['params_M']:.1f} M parameters, peak RSS {r['peak_rss_mib']:.0f} MiB", flush=True)
-    if args.kinds == ["iae"]:
+            mem = f", peak GPU memory {r['peak_gpu_mib']:.0f} MiB" if gpu else ""
+            print(f"train {kind:8s} {config:9s} widths, {w}x{h} (width x height) batch 1 on {args.device}: {r['it_per_s']:.2f} it/s, "
+                  f"{r['params_M']:.1f} M parameters, peak RSS {r['peak_rss_mib']:.0f} MiB{mem}", flush=True)
+    if args.kinds == ["iae"] and not gpu:
         r = loader(200, 2)
         results.append(r)
         print(f"data loader 256x512, 2 workers: {r['decoded_samples_per_s']:.1f} decoded intrinsics samples/s", flush=True)

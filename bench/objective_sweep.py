@@ -55,14 +55,62 @@ def pack(args) -> None:
         if args.setting == "s1":
             xr = masked_black(xr, mr)
             probe.images = masked_black(probe.images, probe.masks)
+    u8 = lambda t: np.round((t.numpy().clip(-1, 1) + 1) * 127.5).astype(np.uint8)  # noqa: E731
+    enc_mask = lambda t: np.round(t.numpy().clip(0, 1) * 255).astype(np.uint8)  # noqa: E731
+    arrays = {"MS": ms, "XR": xr, "YR": yr, "PX": probe.images, "PY": probe.maps}
     if args.dtype == "uint8":  # 4x smaller than float32: a 64x128 protocol set fits a device transfer
-        enc = lambda t: np.round((t.numpy().clip(-1, 1) + 1) * 127.5).astype(np.uint8)  # noqa: E731
-        enc_mask = lambda t: np.round(t.numpy().clip(0, 1) * 255).astype(np.uint8)  # noqa: E731
+        packed = {k: u8(v) for k, v in arrays.items()}
+    elif args.dtype == "jpeg":  # lossy, about 10x smaller again: a 256x512 set fits a device transfer
+        packed = {}  # the probe stays lossless (8-bit), so its figures are scored against exact maps
+        for k, v in arrays.items():
+            if k in ("PX", "PY"):
+                packed[k] = u8(v)
+                continue
+            buf, off = jpeg_encode(u8(v), args.quality)
+            packed.update({f"{k}__jpg": buf, f"{k}__off": off, f"{k}__shape": np.array(v.shape)})
     else:
-        enc = enc_mask = lambda t: t.numpy().astype(np.float16)  # noqa: E731
-    np.savez_compressed(args.out, MS=enc(ms), XR=enc(xr), YR=enc(yr), PX=enc(probe.images), PY=enc(probe.maps),
-                        PM=enc_mask(probe.masks), setting=args.setting)
+        packed = {k: v.numpy().astype(np.float16) for k, v in arrays.items()}
+        enc_mask = lambda t: t.numpy().astype(np.float16)  # noqa: E731
+    np.savez_compressed(args.out, **packed, PM=enc_mask(probe.masks), setting=args.setting)
     print(f"{args.out}: M_s {tuple(ms.shape)}, real {tuple(xr.shape)}, probe {tuple(probe.images.shape)}")
+
+
+def jpeg_encode(a: np.ndarray, quality: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, c, h, w) uint8 with c a multiple of 3 -> one buffer of 4:4:4 JPEGs (three channels
+    each; no chroma subsampling, which would blur normals) and their end offsets."""
+    import io
+
+    from PIL import Image
+
+    parts = []
+    for sample in a:
+        for c in range(0, a.shape[1], 3):
+            b = io.BytesIO()
+            Image.fromarray(np.ascontiguousarray(sample[c:c + 3].transpose(1, 2, 0))).save(
+                b, "JPEG", quality=quality, subsampling=0)
+            parts.append(np.frombuffer(b.getvalue(), dtype=np.uint8))
+    return np.concatenate(parts), np.cumsum([len(p) for p in parts])
+
+
+def jpeg_decode(buf: np.ndarray, off: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    import io
+
+    from PIL import Image
+
+    n, c, h, w = (int(x) for x in shape)
+    out = np.empty((n, c, h, w), dtype=np.uint8)
+    starts = np.concatenate([[0], off[:-1]])
+    for j, (a, b) in enumerate(zip(starts, off)):
+        i, k = divmod(j, c // 3)
+        out[i, 3 * k:3 * k + 3] = np.asarray(Image.open(io.BytesIO(buf[a:b].tobytes()))).transpose(2, 0, 1)
+    return out
+
+
+def load_packed(z, key: str) -> np.ndarray:
+    """One array of a pack, as stored (JPEG packs decoded to uint8)."""
+    if f"{key}__jpg" in z.files:
+        return jpeg_decode(z[f"{key}__jpg"], z[f"{key}__off"], z[f"{key}__shape"])
+    return z[key]
 
 
 def unpack(a: np.ndarray, mask: bool = False) -> np.ndarray:
@@ -79,14 +127,14 @@ def run(args) -> None:
     torch.set_num_threads(args.threads)
     from train.config import load_config
     from train.data import flip_stack
-    from train.loop import build_optimisation, discriminator_step, generator_step
+    from train.loop import build_optimisation, discriminator_step, generator_step, make_ema, update_ema
     from train.model import build_model
-    from train.probe import ProbeSet, evaluate_probe, training_means
+    from train.probe import EMA_PREFIX, ProbeSet, evaluate_probe, pixel_prior, training_means
 
     dev = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     z = np.load(args.data)
     def dec(k: str) -> torch.Tensor:
-        return torch.from_numpy(unpack(z[k], mask=k == "PM")).to(dev)
+        return torch.from_numpy(unpack(load_packed(z, k), mask=k == "PM")).to(dev)
 
     t = {k: dec(k) for k in ("MS", "XR", "YR", "PX", "PY", "PM")}
     h, w = t["MS"].shape[2:]
@@ -99,8 +147,9 @@ def run(args) -> None:
     torch.manual_seed(args.seed)
     model = build_model(cfg).to(dev)
     g_params, d_params, opts, scheds = build_optimisation(cfg, model)
+    ema = make_ema(model, cfg.run.ema_decay)  # probed beside the raw weights, as `fit --probe` does
     ca, cr = training_means(t["MS"])
-    probe = ProbeSet(t["PX"], t["PY"], t["PM"], ca, cr)
+    probe = ProbeSet(t["PX"], t["PY"], t["PM"], ca, cr, pixel_prior(t["MS"]))
     paired = getattr(model, "paired", False)
     gen = torch.Generator(device="cpu").manual_seed(args.seed)
     out = open(args.out, "w") if args.out else sys.stdout
@@ -125,10 +174,14 @@ def run(args) -> None:
         d_logs = discriminator_step(model, opts["D"], d_params, o) if "D" in opts else {}
         for s in scheds.values():
             s.step()
+        if ema is not None:
+            update_ema(ema, model, cfg.run.ema_decay, step)
         late = args.minutes is not None and time.time() - t0 > args.minutes * 60
         if step % args.every == 0 or step == args.steps or late:
             row = {"step": step, "t": round(time.time() - t0, 1), "variant": args.name, "seed": args.seed,
                    **{k: round(v, 4) for k, v in evaluate_probe(model, probe).items()},
+                   **({k: round(v, 4) for k, v in evaluate_probe(ema, probe, prefix=EMA_PREFIX, references=False).items()}
+                      if ema is not None else {}),
                    **{k: round(v, 4) for k, v in {**g_logs, **d_logs}.items()}}
             out.write(json.dumps(row) + "\n")
             out.flush()
@@ -181,7 +234,8 @@ def main() -> None:
     p.add_argument("--n-intrinsics", type=int, default=None)
     p.add_argument("--n-real", type=int, default=None)
     p.add_argument("--n-probe", type=int, default=48)
-    p.add_argument("--dtype", choices=("float16", "uint8"), default="float16")
+    p.add_argument("--dtype", choices=("float16", "uint8", "jpeg"), default="float16")
+    p.add_argument("--quality", type=int, default=90, help="JPEG quality with --dtype jpeg")
     p.add_argument("--out", required=True)
     r = sub.add_parser("run")
     r.add_argument("--data", required=True)

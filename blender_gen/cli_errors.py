@@ -20,7 +20,11 @@ def first_line(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
     text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
+    line = text.splitlines()[0] if text else type(exc).__name__
+    # click prints its own "Error: "; a library's message that starts with one would read "Error: Error: ..."
+    while line.lower().startswith("error:"):
+        line = line[len("error:"):].strip() or type(exc).__name__
+    return line
 
 
 @contextmanager

@@ -336,8 +336,9 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
               help="Seed of the trainings (default: --seed): another run seed on the same data.")
 @click.option("--dry-run", is_flag=True, help="Print the plan and the estimated time, then stop.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Sanity settings only: a config override for the full model's runs (repeatable), to measure "
-                   "another objective on the same data, e.g. --set loss.w_shading_dec=0.")
+              help="A config override for the Intrinsic Autoencoder's runs (the full model and its ablations; "
+                   "the sanity settings: the full model), repeatable, to measure another objective on the same "
+                   "data, e.g. --set loss.w_shading_ren=3. Use another --out for each objective.")
 @click.option("--settings", default="S0,S1", show_default=True, help="Sanity settings only: which of S0, S1 to train.")
 @click.option("--seeds", "seeds", default=None, help="Sanity settings only: comma-separated training seeds "
               "(the budget's by default).")
@@ -358,7 +359,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         if data is not None:
             raise click.BadParameter("the sanity settings make their own data in OUT/data", param_hint="--data")
         return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run, overrides, settings, seeds, no_oracle)
-    for flag, value in (("--set", overrides), ("--seeds", seeds), ("--no-oracle", no_oracle),
+    for flag, value in (("--seeds", seeds), ("--no-oracle", no_oracle),
                         ("--settings", settings != "S0,S1")):
         if value:
             raise click.BadParameter("applies to the sanity budgets only", param_hint=flag)
@@ -371,23 +372,27 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
     elif car_rules is not None:
         raise click.BadParameter("needs --cars (your car models)", param_hint="--car-rules")
     b = BUDGETS[budget]
-    overrides = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
+    sizes = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
                                    ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
     if resolution:
         h, w = parse_size(resolution, "--resolution")
-        overrides.update(train=(h, w), render=f"{max(w, 128)}x{max(h, 64)}")
+        sizes.update(train=(h, w), render=f"{max(w, 128)}x{max(h, 64)}")
     if steps is not None and b.decay_start is not None:
-        overrides["decay_start"] = int(steps * b.decay_start / b.steps)
-    b = replace(b, **overrides)
+        sizes["decay_start"] = int(steps * b.decay_start / b.steps)
+    b = replace(b, **sizes)
     names = [n for n, _, _ in RUNS]
     chosen = names if runs is None else [r.strip() for r in runs.split(",")]
-    unknown = [r for r in chosen if r not in names]
-    if unknown or not chosen:
-        raise click.BadParameter(f"{unknown or runs!r}: choose from {', '.join(names)}", param_hint="--runs")
+    if runs is not None and "" in chosen:  # "full,,full" or a trailing comma: say so, not "unknown run ''"
+        raise click.BadParameter(f"{runs!r}: an empty run name (two commas or a comma at an end); "
+                                 f"expected comma-separated names from {', '.join(names)}", param_hint="--runs")
     repeated = sorted({r for r in chosen if chosen.count(r) > 1})
     if repeated:  # two trainings of one run folder would be two writers
         raise click.BadParameter(f"{runs!r}: {', '.join(repeated)} named twice; name each run once",
                                  param_hint="--runs")
+    unknown = [r for r in chosen if r not in names]
+    if unknown or not chosen:
+        raise click.BadParameter(f"{', '.join(unknown) if unknown else repr(runs)}: unknown run; choose from "
+                                 f"{', '.join(names)}", param_hint="--runs")
     import torch
 
     gpus = torch.cuda.device_count()
@@ -397,7 +402,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         click.echo(f"--jobs {jobs}: capped at {min(cores, len(chosen))} ({len(chosen)} run(s), {cores} core(s))")
         jobs = min(cores, len(chosen))
     plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed, data, tuple(cars), car_rules, photos, gallery)
+                run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides))
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     real_text = f"your photos in {photos} ({gallery} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import click
@@ -100,6 +99,7 @@ class Plan:
     car_rules: str | None = None
     photos: Path | None = None
     gallery: int = 8
+    overrides: tuple[str, ...] = ()  # --set for the Intrinsic Autoencoder's runs (not the oracle or baselines)
 
     @property
     def data_dir(self) -> Path:
@@ -171,6 +171,8 @@ class Plan:
         if preset == "munit":  # MUNIT keeps its own schedule (step policy); only the length is shared
             sets = [x for x in sets if not x.startswith("optim.decay_start")]
         sets += list(extra)
+        if preset == b.preset and name != "oracle":
+            sets += list(self.overrides)
         data = self.data_dir
         cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(self.real_dir),
                "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",

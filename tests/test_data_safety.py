@@ -331,3 +331,12 @@ def test_degenerate_models_and_malformed_results_are_one_line_errors(tmp_path):
                  ["merge", str(tmp_path / "results.json"), "--out", str(tmp_path / "j.json")]):
         proc = subprocess.run([sys.executable, "-m", "eval.cli", *args], cwd=ROOT, capture_output=True, text=True)
         _one_line_error(proc, "not a report's results.json")
+
+
+def test_one_line_errors_do_not_repeat_clicks_error_prefix():
+    from blender_gen.cli_errors import first_line
+
+    assert first_line(ValueError("Error: cannot read x.exr\nmore")) == "cannot read x.exr"
+    assert first_line(ValueError("error:  Error: bad")) == "bad"
+    assert first_line(ValueError("Error:")) == "ValueError"
+    assert first_line(ValueError("no error: here")) == "no error: here"

@@ -71,7 +71,10 @@ def test_children_of_reproduce_die_with_it(tmp_path):
 def test_reproduce_refuses_a_run_named_twice():
     proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full,,full",
                            "--dry-run"], cwd=ROOT, capture_output=True, text=True)
-    assert proc.returncode == 2 and "--runs" in proc.stderr
+    assert proc.returncode == 2 and "--runs" in proc.stderr and "empty run name" in proc.stderr
+    typo = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full,fulll",
+                           "--dry-run"], cwd=ROOT, capture_output=True, text=True)
+    assert typo.returncode == 2 and "fulll: unknown run" in typo.stderr
     twice = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs",
                             "full,no_dec,full", "--dry-run"], cwd=ROOT, capture_output=True, text=True)
     assert twice.returncode == 2 and "full named twice" in twice.stderr

@@ -340,6 +340,17 @@ def test_settings_a_model_kind_ignores_or_out_of_range_are_refused(preset, setti
         load_config(preset, [setting])
 
 
+def test_the_paper_preset_trains_the_oracle_and_the_baselines():
+    """`reproduce --budget gpu|paper` builds the oracle as `--config paper --set model.kind=oracle`:
+    the preset's own [loss] values are dropped for a kind that never reads them, while a --set
+    that names one is still refused."""
+    oracle = load_config("paper", ["model.kind=oracle"])
+    assert oracle.model.kind == "oracle" and oracle.model.h_ngf == 64 and oracle.data.height == 256
+    assert load_config("paper", ["model.kind=cyclegan"]).model.kind == "cyclegan"
+    with pytest.raises(ConfigError, match="loss.w_ren does not apply"):
+        load_config("paper", ["model.kind=oracle", "loss.w_ren=3"])
+
+
 def test_sections_a_model_kind_never_reads_are_named():
     from train.config import unread_sections
 

@@ -427,12 +427,24 @@ def load_config(name_or_file: str, overrides: list[str] | None = None) -> Config
 
 
 def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
-    """`--set key=value` items applied to `cfg`, then the whole config validated."""
+    """`--set key=value` items applied to `cfg`, then the whole config validated.
+
+    An override that changes model.kind (`--config paper --set model.kind=oracle`) drops the
+    preset's values in the sections the new kind never reads (back to their defaults); only a
+    setting the overrides name there is refused as not applying."""
+    kind, named = cfg.model.kind, set()
     for item in overrides or []:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected key=value")
         key, value = item.split("=", 1)
         set_value(cfg, key.strip(), value.strip())
+        named.add(key.strip())
+    if cfg.model.kind != kind and cfg.model.kind in KIND_SECTIONS:
+        defaults = Config()
+        for key in _ignored_settings(cfg):
+            if key not in named:
+                section, name = key.split(".")
+                setattr(getattr(cfg, section), name, getattr(getattr(defaults, section), name))
     return validate(cfg)
 
 

@@ -1,0 +1,69 @@
+"""Probe curves at the paper's resolution (the `gpu` budget's networks) beside the `cpu` budget's.
+
+  python bench/plot_gpu_budget.py --gpu eval/results/gpu_budget \
+      --cpu eval/results/cpu_chroma/chroma_s21_probe.jsonl eval/results/cpu_chroma/chroma_s22_probe.jsonl \
+      --cpu-oracle eval/results/cpu_new/s21/oracle_s21_probe.jsonl eval/results/cpu_new/s22/oracle_s22_probe.jsonl \
+      --out eval/results/gpu_budget/curves.png
+GPU curves: bench/objective_sweep.py files (NAME_sSEED.jsonl, moving-average figures where present);
+CPU curves: `fit --probe` rows of the committed `cpu` comparison (raw weights: those runs predate the
+moving average). Steps are optimiser steps: batch 1 at 256x512 on the GPU, batch 4 at 64x128 on the CPU.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+PANELS = (("normal_deg", "normals (deg)"), ("albedo_l1", "albedo L1 (0-255)"), ("reflection_l1", "reflection L1 (0-255)"))
+
+
+def rows(path: Path) -> list[dict]:
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+def value(r: dict, key: str) -> float:
+    return r.get(f"probe_ema/{key}", r[f"probe/{key}"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gpu", type=Path, required=True, help="folder of the GPU runs' curves")
+    ap.add_argument("--cpu", type=Path, nargs="*", default=[], help="the cpu budget's full-model probe files")
+    ap.add_argument("--cpu-oracle", type=Path, nargs="*", default=[], help="the cpu budget's oracle probe files")
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args()
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    curves = [(f, "C0" if f.stem.startswith("full") else "C2", "-", f"GPU 256x512 {f.stem.replace('_s', ', seed ')}")
+              for f in sorted(a.gpu.glob("*.jsonl"))]
+    curves += [(f, "C0", ":", f"CPU 64x128 full, {f.stem.split('_')[1]}") for f in a.cpu]
+    curves += [(f, "C2", ":", f"CPU 64x128 oracle, {f.stem.split('_')[1]}") for f in a.cpu_oracle]
+    bars = None
+    for f, colour, ls, label in curves:
+        rs = [r for r in rows(f) if "probe/normal_deg" in r]
+        for ax, (key, _) in zip(axes, PANELS):
+            ax.plot([r["step"] for r in rs], [value(r, key) for r in rs], color=colour, ls=ls, lw=1.2 if ls == "-" else 0.9,
+                    alpha=1.0 if ls == "-" else 0.7, label=label)
+        if bars is None and ls == "-":
+            bars = rs[-1]
+    for ax, (key, title) in zip(axes, PANELS):
+        if bars is not None:
+            ax.axhline(bars[f"probe/const_{key}"], ls="--", color="gray", lw=1, label="constant (GPU probe)")
+            if f"probe/prior_{key}" in bars:
+                ax.axhline(bars[f"probe/prior_{key}"], ls="-.", color="gray", lw=1, label="per-pixel prior (GPU probe)")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("optimiser step")
+    axes[0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(a.out, dpi=90)
+    plt.close(fig)
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
