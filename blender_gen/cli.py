@@ -338,14 +338,15 @@ def cars_cmd(out: Path, cars: tuple[str, ...], car_rules: str | None, columns: i
               help="RULES.toml for one model; a folder (NAME.toml each) for several.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Part-colour PNG (side, front, top, bottom) for one model; with several, NAME.png in --out.")
-@click.option("--length", default=4.5, show_default=True, type=click.FloatRange(0.5, 30), callback=_finite_option,
-              help="Bumper-to-bumper length in metres written to the rules.")
+@click.option("--length", default=None, type=click.FloatRange(0.5, 30), callback=_finite_option,
+              help="Bumper-to-bumper length in metres written to the rules (default: the model's own length "
+                   "where its units look like metres for the category guessed, else that category's typical length).")
 @click.option("--forward", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
               help="The model's front axis after import (default: inferred from its lamps or profile).")
 @click.option("--up", type=click.Choice(["+X", "-X", "+Y", "-Y", "+Z", "-Z"]), default=None,
               help="The model's up axis after import (default: inferred: the axis roof and hood face).")
 @click.option("--force", is_flag=True, help="Overwrite existing rules/preview files.")
-def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length: float, forward: str | None,
+def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length: float | None, forward: str | None,
                 up: str | None, force: bool) -> None:
     """Propose a rules file for car models that have none (glass, wheels, lights, ... inferred).
 
@@ -394,7 +395,7 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
         sys.exit(130)
 
 
-def _label_targets(targets: list, forward: str | None, up: str | None, length: float) -> None:
+def _label_targets(targets: list, forward: str | None, up: str | None, length: float | None) -> None:
     from .cars.faces import read_car
     from .cars.importer import model_files
     from .cars.labeller import infer, preview as draw_preview, propose_rules, rules_reproduce
@@ -419,7 +420,7 @@ def _label_targets(targets: list, forward: str | None, up: str | None, length: f
             reproduced = rules_reproduce(table, lab, rules_path, str(split_car(token)[0]))
         except RulesError as exc:
             _fail(f"{rules_path}: the proposed rules do not load ({exc}); please report this model")
-        click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category} -> {rules_path}")
+        click.echo(f"{name}: {len(table)} faces, forward {lab.forward}, up {lab.up}, category {lab.category}, length {length if length is not None else lab.length:g} m -> {rules_path}")
         for part, faces, share, why in lab.summary(areas):
             ev = ", ".join(f"{k} {v}" for k, v in sorted(why.items(), key=lambda kv: -kv[1]))
             click.echo(f"  {part:16s} {faces:6d} faces {100 * share:5.1f}% of area   ({ev})")

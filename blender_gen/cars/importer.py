@@ -61,7 +61,7 @@ def import_model(path: str | Path, rules: Rules) -> ImportedModel:
 
         table, _ = read_car(files)
         lab = infer(table)
-        settings = ModelSettings(forward=lab.forward, up=lab.up, length=rules.model.length, category=lab.category)
+        settings = ModelSettings(forward=lab.forward, up=lab.up, length=lab.length, category=lab.category)
         return _normalise(files[0], settings, table.tris, table.normals, lab.labels, int((lab.evidence == "default").sum()))
     settings = rules.settings_for(files[0])
     table, _ = read_car(files, settings.forward, settings.up)

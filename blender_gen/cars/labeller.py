@@ -29,7 +29,7 @@ import numpy as np
 
 from .rules import AXES, FACING_COS, RulesError, face_normals
 
-LABELLER_VERSION = 3
+LABELLER_VERSION = 4  # 4: category from the roof's length and the proportions; the length guessed
 FLOOR_HEIGHT = (0.0, 0.35)  # the band (fractions of the model's height) whose ground-facing faces are floor
 DARK_GLASS_V = 0.36  # clusters darker than this are glass face by face in the greenhouse band
 
@@ -86,6 +86,7 @@ class Labelling:
     up: str
     category: str
     warnings: list[str] = field(default_factory=list)
+    length: float = 4.5  # metres: the model's own length where plausible for its category, else the category's typical
 
     def summary(self, areas: np.ndarray) -> list[tuple[str, int, float, dict[str, int]]]:
         """(part, faces, area share, {evidence: faces}) per part, largest area first."""
@@ -387,10 +388,43 @@ def infer(table, forward: str | None = None, up: str | None = None) -> Labelling
     for part in ("windows", "tyres", "headlights", "tail_lights"):
         if not np.isin(labels, [part, "windshield"] if part == "windows" else [part]).any():
             warnings.append(f"no {part.replace('_', ' ')} found: their faces are painted body")
-    # category from proportions (height / length), as the catalogue's ranges separate them
-    ratio = size[2] / size[0]
-    category = "van" if ratio > 0.44 else "suv" if ratio > 0.36 else "sedan"
-    return Labelling(labels, evidence, forward, up, category, warnings)
+    category = guess_category(c, size)
+    return Labelling(labels, evidence, forward, up, category, warnings, guess_length(category, float(size[0])))
+
+
+def guess_category(c: np.ndarray, size: np.ndarray) -> str:
+    """A category from two shape cues that survive a stylised model's proportions: how much of the
+    length the roof covers (faces in the top 15% of the height; a sedan's cabin is short, a van's
+    roof runs nearly its whole length) and height over length; where the model's units look like
+    metres, a length above the hatchbacks' (4.45 m) makes a hatchback-shaped model an SUV.
+    Thresholds from the 28 named models (24 right: every sedan, wagon and van, 4 of 5 hatchbacks
+    and minivans, 3 of 5 SUVs) and the 7 Kenney models (7 of 7 against their hand-written rules)."""
+    top = c[:, 2] > 0.85
+    cover = float(np.ptp(c[top, 0])) / 2 if top.sum() > 1 else 0.0  # c[:, 0] spans [-1, 1] along the length
+    hl = float(size[2] / size[0])
+    if cover >= 0.71 or (cover >= 0.58 and hl >= 0.40):
+        return "van"
+    if cover >= 0.58:
+        return "minivan"
+    if cover < 0.38:
+        return "sedan"
+    if hl >= 0.40:
+        return "suv"
+    if hl <= 0.35:
+        return "station_wagon"
+    if cover >= 0.50:
+        return "suv"
+    return "suv" if 4.45 < size[0] <= 8.0 else "hatchback"
+
+
+def guess_length(category: str, model_length: float) -> float:
+    """The model's own length when its units look like metres for its category (0.75-1.6 times the
+    category's typical length, data_manifests/car_ranges.toml), else that typical length."""
+    from .sampler import load_ranges
+
+    lo, hi = load_ranges()[category]["length"]
+    typical = round((lo + hi) / 2, 2)
+    return round(model_length, 2) if 0.75 * typical <= model_length <= 1.6 * typical else typical
 
 
 def _chain(ids: list, mean: dict, cell: dict, tol: float, spread: float = 0.35) -> dict:
@@ -454,13 +488,14 @@ def _fmt(v) -> str:
     return "[" + ", ".join(f"{float(x):.4f}" for x in v) + "]"
 
 
-def propose_rules(table, lab: Labelling, model_name: str, length: float = 4.5, min_share: float = 0.0005) -> str:
+def propose_rules(table, lab: Labelling, model_name: str, length: float | None = None, min_share: float = 0.0005) -> str:
     """A rules file (TOML text) that reproduces a labelling: an object rule where an object is one
     part, material rules where materials separate its parts, else palette rules (a UV box and a
     colour range per colour group of a part). Groups under `min_share` of the area are left to
     the object's main part; `rule_labels` on the result measures what that costs."""
     areas = table.areas()
     total = float(areas.sum()) or 1.0
+    length = lab.length if length is None else length
     lines = [f"# Proposed by `iae-gen label-parts` (labeller v{LABELLER_VERSION}) for {model_name}: check the",
              "# part-colour preview, edit what is wrong, then use it with --car-rules.", "",
              "[model]", f"forward = {_toml_str(lab.forward)}", f"up = {_toml_str(lab.up)}", f"length = {length}",
