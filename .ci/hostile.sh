@@ -4,7 +4,7 @@
 # Usage (from a checkout with its virtual environment made by `make`):  bash .ci/hostile.sh [WORKDIR]
 set -u
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
-W=${1:-$(mktemp -d /tmp/hostile19.XXXX)}
+W=${1:-$(mktemp -d /tmp/hostile.XXXX)}
 mkdir -p "$W"
 export PATH="$ROOT/.venv/bin:$PATH" OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 PY="$ROOT/.venv/bin/python"
@@ -131,7 +131,10 @@ case_ "7 answers for a pair the study does not have are refused" "1|2" "not in t
 
 echo "== 9 one Ctrl-C stops a Cycles render with 130"
 set -m  # job control: a background job that ignores SIGINT would not be what a terminal's Ctrl-C meets
-iae-gen turntable --out "$W/ttp" --car sedan_a --frames 6 --resolution 128x64 --radius 7 --pbr --samples 64 --quiet >"$W/ctrlc.txt" 2>&1 &
+# the Ctrl-C a terminal sends reaches a program whose SIGINT is not ignored: a script started in the
+# background (nohup ... &) inherits an ignored SIGINT, so restore the default before the command
+"$PY" -c 'import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execvp(sys.argv[1], sys.argv[1:])' \
+  iae-gen turntable --out "$W/ttp" --car sedan_a --frames 6 --resolution 128x64 --radius 7 --pbr --samples 64 --quiet >"$W/ctrlc.txt" 2>&1 &
 pid=$!; sleep 12; kill -INT $pid; wait $pid; rc=$?
 set +m
 check "9 exit status $rc after one SIGINT, no traceback" sh -c "[ $rc = 130 ] && ! grep -q Traceback '$W/ctrlc.txt'"
