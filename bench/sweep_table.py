@@ -96,7 +96,9 @@ def figure(root: Path, data: dict, out: Path, order: list[str] | None) -> None:
     for ax, setting in zip(axes[0], data):
         runs = load(folder(root, setting))
         names = [v for v in (order or []) if v in runs] + sorted(v for v in runs if v not in (order or []))
-        for k, v in enumerate(names):
+        every = list(dict.fromkeys([*(order or []), *sorted(v for d in data.values() for v in d)]))
+        for v in names:
+            k = every.index(v)  # one colour per variant in every panel
             for j, (seed, rows) in enumerate(sorted(runs[v].items())):
                 key = "probe_ema/normal_deg" if "probe_ema/normal_deg" in rows[-1] else "probe/normal_deg"
                 ax.plot([r["step"] for r in rows], [r[key] for r in rows], color=f"C{k}", lw=1,

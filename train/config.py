@@ -55,7 +55,8 @@ class ModelConfig:
     # images with backgrounds) 48.6 / 49.3 deg at step 5000 on two seeds against the previous objective's
     # 39.9 / 38.2, albedo 74.1 / 72.8 against 39.7 / 46.5, speckle 3.6-3.9: so the default is the paper's R.
     # With w_shading_ren = 3 alone (no decomposition-side term): S0 25.1 / 25.6 / 26.3 deg (defaults 36.4-38.9),
-    # S1 31.4-32.2 (38.3-38.8), speckle 1.3 / 1.7 (docs/normals_from_shading.md); not yet measured on the protocol.
+    # S1 31.4-32.2 (38.3-38.8), speckle 1.3 / 1.7; but on the protocol at 32x64 (backgrounds) 46.1 / 52.2
+    # against the defaults' 40.7 / 41.4 on two seeds (docs/normals_from_shading.md).
     renderer: str = "net"
     # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
     # agree on a hidden code (S0 normals 27 -> 36 deg, speckle x2); one on the background only gave H a
