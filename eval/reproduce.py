@@ -136,7 +136,9 @@ class Plan:
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.data_dir, self.seed
         common = ["--resolution", b.render, "--workers", str(max(1, min(os.cpu_count() or 1, 8))), "--quiet"]
-        mine = (["--cars", *self.cars] + (["--car-rules", self.car_rules] if self.car_rules else [])) if self.cars else []
+        # iae-gen's --cars is repeated per token (a file name may hold a comma)
+        mine = ([a for c in self.cars for a in ("--cars", c)]
+                + (["--car-rules", self.car_rules] if self.car_rules else [])) if self.cars else []
         train_cars = mine or ["--cars", "procedural:train"]
         which = "your cars" if self.cars else "training cars"
         commands = [

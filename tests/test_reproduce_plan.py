@@ -157,8 +157,13 @@ def test_own_cars_and_photos_make_the_plan(tmp_path):
                 photos=photos, gallery=3)
     commands = dict(plan.dataset_commands())
     assert len(commands) == 3 and not any("stand-in" in what for what in commands)  # the photos are the real set
+    from blender_gen.cli import main as gen_main
+
     for what, args in commands.items():
-        assert args[args.index("--cars") + 1:args.index("--cars") + 3] == ["sedan_a", "suv_b"], what
+        cars = [args[k + 1] for k, a in enumerate(args) if a == "--cars"]
+        assert cars == ["sedan_a", "suv_b"], what  # one --cars per token, as iae-gen repeats it
+        ctx = gen_main.commands[args[0]].make_context(args[0], list(args[1:]))  # iae-gen parses the command
+        assert tuple(ctx.params["cars"]) == ("sedan_a", "suv_b"), what
     assert plan.split_photos() == (9, 3)
     assert len(list((plan.data_dir / "photos_gallery").iterdir())) == 3
     assert plan.split_photos() == (9, 3)  # idempotent
