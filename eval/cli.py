@@ -381,7 +381,12 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         sizes["decay_start"] = int(steps * b.decay_start / b.steps)
     b = replace(b, **sizes)
     names = [n for n, _, _ in RUNS]
+    if photos is not None and runs is None:  # the oracle trains on real images with their intrinsics: photos have none
+        names = [n for n in names if n != "oracle"]
     chosen = names if runs is None else [r.strip() for r in runs.split(",")]
+    if photos is not None and "oracle" in chosen:
+        raise click.BadParameter(f"{runs!r}: the supervised oracle trains on real images with their intrinsics, "
+                                 "and photos (--real) have none; leave out oracle", param_hint="--runs")
     if runs is not None and "" in chosen:  # "full,,full" or a trailing comma: say so, not "unknown run ''"
         raise click.BadParameter(f"{runs!r}: an empty run name (two commas or a comma at an end); "
                                  f"expected comma-separated names from {', '.join(names)}", param_hint="--runs")

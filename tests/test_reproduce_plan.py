@@ -169,6 +169,11 @@ def test_own_cars_and_photos_make_the_plan(tmp_path):
     assert plan.split_photos() == (9, 3)  # idempotent
     fit = plan.fit_command("full")
     assert fit[fit.index("--real") + 1] == str(plan.data_dir / "photos_train")
+    oracle = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full,oracle",
+                             "--cars", "sedan_a", "--real", str(photos), "--out", str(tmp_path / "o"), "--dry-run"],
+                            cwd=ROOT, capture_output=True, text=True)
+    assert oracle.returncode == 2 and "photos (--real) have none" in oracle.stderr  # refused before any work
+    assert not (tmp_path / "o").exists()
     proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full",
                            "--cars", "sedan_a", "--real", str(photos), "--out", str(tmp_path / "o"), "--dry-run"],
                           cwd=ROOT, capture_output=True, text=True)
