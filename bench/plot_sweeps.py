@@ -23,12 +23,13 @@ COLOURS = {"paper": "C0", "w10": "C1", "w10_mean": "C4", "w10_mean_car": "C3", "
            "w10_mean_car_detach": "C6", "w10_mean_car_lsgan": "C8", "w10_mean_car_dm01": "C2", "oracle": "goldenrod"}
 
 
-def load(folder: Path) -> dict[str, dict[str, list[dict]]]:
-    runs: dict[str, dict[str, list[dict]]] = defaultdict(dict)
+def load(folder: Path) -> dict[str, dict[int, list[dict]]]:
+    """{variant: {seed: probe rows}} of a folder of bench/objective_sweep.py curves."""
+    runs: dict[str, dict[int, list[dict]]] = defaultdict(dict)
     for f in sorted(folder.glob("*.jsonl")):
         rows = [json.loads(x) for x in f.read_text().splitlines() if x.strip()]
         if rows:
-            runs[rows[0]["variant"]][str(rows[0]["seed"])] = rows
+            runs[rows[0]["variant"]][int(rows[0]["seed"])] = rows
     return runs
 
 

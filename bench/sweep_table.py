@@ -14,19 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections import defaultdict
+import sys
 from pathlib import Path
 
-PASS_MARGIN_DEG = 5.0  # eval/sanity.py's
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def load(folder: Path) -> dict[str, dict[int, list[dict]]]:
-    runs: dict[str, dict[int, list[dict]]] = defaultdict(dict)
-    for f in sorted(folder.glob("*.jsonl")):
-        rows = [json.loads(x) for x in f.read_text().splitlines() if x.strip()]
-        if rows:
-            runs[rows[0]["variant"]][int(rows[0]["seed"])] = rows
-    return runs
+from bench.plot_sweeps import load  # noqa: E402
+from eval.sanity import PASS_MARGIN_DEG  # noqa: E402  (the sanity benchmark's pass line)
 
 
 def settings(root: Path) -> list[str]:
