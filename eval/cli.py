@@ -373,7 +373,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         raise click.BadParameter("needs --cars (your car models)", param_hint="--car-rules")
     b = BUDGETS[budget]
     sizes = {k: v for k, v in (("steps", steps), ("n_intrinsics", n_intrinsics), ("n_real", n_real),
-                                   ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
+                               ("n_eval", n_eval), ("n_fid", n_fid)) if v is not None}
     if resolution:
         h, w = parse_size(resolution, "--resolution")
         sizes.update(train=(h, w), render=f"{max(w, 128)}x{max(h, 64)}")
