@@ -58,6 +58,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/bench_generate.py
+	$(PY) bench/bench_background.py
 	$(PY) bench/bench_pbr.py --views 3 --samples 4 8 16 --reference 128
 	$(PY) bench/bench_cars.py
 	$(PY) bench/bench_car_diversity.py

@@ -42,17 +42,27 @@ def sample_equirect(env: np.ndarray, d: np.ndarray, rotation_deg: float = 0.0) -
     Pixel centres sit at (i + 0.5) / W as in Blender; u wraps, v clamps.
     """
     h, w, _ = env.shape
-    u, v = direction_to_uv(rotate_z(d, -rotation_deg))
-    x = u * w - 0.5
-    y = (1.0 - v) * h - 0.5  # rows run top-down here
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    d = np.asarray(d)
+    d = d if d.dtype == np.float32 else d.astype(np.float64)
+    length = np.sqrt(np.einsum("...i,...i->...", d, d))
+    # Blender's mapping (direction_to_uv) with the turn folded into the azimuth
+    u = 0.5 - (np.arctan2(d[..., 1], d[..., 0]) - np.deg2rad(rotation_deg)) / (2.0 * np.pi)
+    v = 0.5 + np.arcsin(np.clip(d[..., 2] / np.maximum(length, 1e-12), -1.0, 1.0)) / np.pi
+    x = (u * w - 0.5).ravel()
+    y = ((1.0 - v) * h - 0.5).ravel()  # rows run top-down here
+    xf, yf = np.floor(x), np.floor(y)
+    fx, fy = (x - xf).astype(np.float32)[:, None], (y - yf).astype(np.float32)[:, None]
+    x0, y0 = xf.astype(np.intp), yf.astype(np.intp)
     xa, xb = x0 % w, (x0 + 1) % w
-    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
-    top = env[ya, xa] * (1 - fx) + env[ya, xb] * fx
-    bot = env[yb, xa] * (1 - fx) + env[yb, xb] * fx
-    return (top * (1 - fy) + bot * fy).astype(np.float32)
+    ya, yb = np.clip(y0, 0, h - 1) * w, np.clip(y0 + 1, 0, h - 1) * w
+    flat = np.asarray(env, dtype=np.float32).reshape(h * w, -1)
+    texel = lambda i: np.take(flat, i, axis=0)  # noqa: E731  (3x faster than fancy indexing)
+    top = texel(ya + xa)
+    top += (texel(ya + xb) - top) * fx
+    bot = texel(yb + xa)
+    bot += (texel(yb + xb) - bot) * fx
+    top += (bot - top) * fy
+    return top.reshape(*d.shape[:-1], flat.shape[-1])
 
 
 def reflect(view: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -133,6 +143,24 @@ def procedural_sky(variant: int, width: int = 1024, height: int = 512) -> np.nda
     return sky.astype(np.float32)
 
 
+def view_rays(cam_to_world: np.ndarray, focal_px: float, height: int, width: int,
+              dtype: type = np.float64) -> np.ndarray:
+    """(H, W, 3) unit world directions of a pinhole camera's rays through the pixel centres;
+    `cam_to_world` is the 3x3 rotation whose columns are the camera's right, up and back axes."""
+    xs = (np.arange(width) + 0.5) - 0.5 * width
+    ys = 0.5 * height - (np.arange(height) + 0.5)
+    ray_cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -focal_px), axis=-1).astype(dtype)
+    ray_cam /= np.linalg.norm(ray_cam, axis=-1, keepdims=True)
+    return ray_cam @ np.asarray(cam_to_world, dtype=dtype).T
+
+
+def background_lookup(cam_to_world: np.ndarray, focal_px: float, height: int, width: int,
+                      env: np.ndarray, rotation_deg: float) -> np.ndarray:
+    """(H, W, 3) the environment seen directly along each pixel's view ray: what Cycles'
+    Environment pass shows, without a world to render (the intrinsics' environment background)."""
+    return sample_equirect(env, view_rays(cam_to_world, focal_px, height, width, np.float32), rotation_deg)
+
+
 def reflection_reference(normal_cam: np.ndarray, cam_to_world: np.ndarray, focal_px: float,
                          env: np.ndarray, rotation_deg: float, gloss: np.ndarray) -> np.ndarray:
     """NumPy reference of the `reflection` layer for a pinhole camera.
@@ -142,11 +170,7 @@ def reflection_reference(normal_cam: np.ndarray, cam_to_world: np.ndarray, focal
     back axes in world space; `gloss` (H, W) the glossiness per pixel.
     """
     h, w, _ = normal_cam.shape
-    xs = (np.arange(w) + 0.5) - 0.5 * w
-    ys = 0.5 * h - (np.arange(h) + 0.5)
-    ray_cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -focal_px), axis=-1).astype(np.float64)
-    ray_cam /= np.linalg.norm(ray_cam, axis=-1, keepdims=True)
-    view = ray_cam @ cam_to_world.T
+    view = view_rays(cam_to_world, focal_px, h, w)
     n = normal_cam.astype(np.float64) @ cam_to_world.T
     n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
     r = reflect(view, n)

@@ -15,6 +15,7 @@ import shutil
 import sys
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -217,9 +218,21 @@ def _unstarted(out: Path) -> None:
             shutil.rmtree(out / sub, ignore_errors=True)
 
 
+def legacy_recipe(recipe: Recipe, out: Path) -> Recipe:
+    """The recipe as an existing set at `out` was made: an environment-background set from before
+    the NumPy lookup keeps Cycles' Environment pass, so it resumes and extends byte-identically."""
+    if recipe.background != "environment" or not (out / "dataset.json").exists():
+        return recipe
+    old = read_info(out).get("recipe", {})
+    if old.get("background") == "environment" and "environment_pass" not in old:
+        return replace(recipe, environment_pass="cycles")
+    return recipe
+
+
 def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_t: tuple[int, int],
                      progress: bool) -> dict:
     fresh = not (out / "dataset.json").exists()
+    recipe = legacy_recipe(recipe, out)
     writer, done_rows = prepare_output(out, recipe, count, shard_t)
     done = {r["index"] for r in done_rows}
     todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]

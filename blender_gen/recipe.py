@@ -39,6 +39,10 @@ class Recipe:
     # the reflection layer's background is the environment seen directly behind the car, so the
     # sky and ground of a real image are expressible as intrinsics (docs/experiment_log.md: Making it learn).
     background: str = "black"
+    # How the environment background is made: "lookup" = the environment map sampled along each
+    # pixel's view ray in NumPy (no world to render: as fast as "black"); "cycles" = Cycles'
+    # Environment pass behind the car as a holdout (sets made before "lookup" existed).
+    environment_pass: str = "lookup"
 
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""
@@ -60,6 +64,8 @@ class Recipe:
             d["catalogue"] = catalogue_digest()
         if self.background == "black":  # sets made before the option existed keep their identity
             del d["background"]
+        if self.background == "black" or self.environment_pass == "cycles":
+            del d["environment_pass"]  # likewise sets made before the lookup existed
         if self.orbit is None:  # per-sample Cycles noise by frame number (render.py); older sets
             d["noise"] = "frame"  # used the first-rendered sample's seed and cannot be resumed
         return d

@@ -19,7 +19,7 @@ from . import scene as S
 from .camera import orbit_focal, orbit_pose, sample_camera
 from .cars import RandomCars, load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
-from .envmap import PROCEDURAL_PREFIX, procedural_sky
+from .envmap import PROCEDURAL_PREFIX, background_lookup, procedural_sky
 from .materials import load_materials
 from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
@@ -54,6 +54,7 @@ class SampleRenderer:
         self.materials = {**self.table.parts}
         self.env_names = recipe.envmap_names()
         self._env_images: dict[str, bpy.types.Image] = {}
+        self._env_arrays: dict[str, np.ndarray] = {}
         self.shader, self.env_node = S.car_material(self.env_image(self.env_names[0]), physical=self.physical)
         self._setup_lighting()
         self._part_materials, self._tinted = load_part_materials()
@@ -73,9 +74,10 @@ class SampleRenderer:
     world_env = None  # the world's environment texture node, where the world shows the environment
 
     def _setup_lighting(self) -> None:
-        """Intrinsics need no light: AOVs only. With `background = "environment"` the world shows
-        the environment, read back through Cycles' Environment pass (the car is a holdout)."""
-        if self.recipe.background == "environment":
+        """Intrinsics need no light: AOVs only. The environment background is looked up along the
+        view rays after the render (`environment_pass = "lookup"`), or, for sets made before that,
+        the world shows the environment, read back through Cycles' Environment pass."""
+        if self.recipe.background == "environment" and self.recipe.environment_pass == "cycles":
             self.world_env, self.world_turn = S.environment_world(self.scene, self.env_node.image)
             self.scene.view_layers[0].use_pass_environment = True
 
@@ -158,6 +160,13 @@ class SampleRenderer:
     def env_pixels(self, name: str) -> np.ndarray:
         """The environment map exactly as the shader sees it (for reference checks)."""
         return S.image_to_array(self.env_image(name))
+
+    def env_array(self, name: str) -> np.ndarray:
+        """`env_pixels`, read from Blender once per environment."""
+        arr = self._env_arrays.get(name)
+        if arr is None:
+            arr = self._env_arrays[name] = self.env_pixels(name)
+        return arr
 
     def car(self, spec) -> S.CarInstance:
         car = self._cars.get(spec.name)
@@ -262,7 +271,15 @@ class SampleRenderer:
         frame = 1 if orbit else index % self.MAX_FRAME + 1
         if self.scene.frame_current != frame:
             self.scene.frame_current = frame
-        return self.render_current(), d
+        layers = self.render_current()
+        if self.recipe.kind == "intrinsics" and self.recipe.background == "environment" and self.world_env is None:
+            w, h = self.recipe.width, self.recipe.height
+            behind = 1.0 - layers["mask"]
+            env = background_lookup(d["pose"].matrix(), d["pose"].focal_px(w), h, w, self.env_array(d["env"]),
+                                    d["rotation"])
+            # the AOV covers the car, the environment the rest: edges blend by coverage
+            layers["reflection"] = layers["reflection"] + behind * env
+        return layers, d
 
     def _read_passes(self) -> dict[str, np.ndarray]:
         ch = read_exr_channels(self._scratch)
@@ -277,7 +294,7 @@ class SampleRenderer:
         on = mask > 0
         normal = np.where(on & (length > 1e-6), normal / np.maximum(length, 1e-6), 0.0)
         reflection = get("reflection", "RGB")
-        if self.recipe.kind == "intrinsics" and self.recipe.background == "environment":
+        if self.recipe.kind == "intrinsics" and self.world_env is not None:
             # the AOV covers the car, the Environment pass the rest: edges blend by coverage
             reflection = reflection + np.maximum(get("Environment", "RGB"), 0.0)
         return {

@@ -375,6 +375,51 @@ def test_environment_background_shows_what_the_pbr_image_shows_behind_the_car(tm
         assert rel < 0.2, rel  # what differs is the car's shadow on the ground and sampling noise
 
 
+def test_environment_lookup_matches_cycles_environment_pass():
+    """The environment background looked up along the view rays in NumPy is what Cycles'
+    Environment pass shows there (sets made before the lookup keep the pass); the car is unchanged."""
+    from blender_gen.recipe import Recipe
+    from blender_gen.render import SampleRenderer
+
+    from .conftest import TEST_THREADS
+
+    got = {}
+    for method in ("lookup", "cycles"):
+        r = SampleRenderer(Recipe(kind="intrinsics", seed=4, width=96, height=48, background="environment",
+                                  environment_pass=method), threads=TEST_THREADS)
+        assert (r.world_env is None) == (method == "lookup")
+        got[method] = [r.render_layers(i)[0] for i in range(3)]
+        r.close()
+    rel = []
+    for a, b in zip(got["lookup"], got["cycles"]):
+        assert np.array_equal(a["mask"], b["mask"]) and np.abs(a["normal"] - b["normal"]).max() < 5e-3
+        car, bg = a["mask"][..., 0] >= 1.0, a["mask"][..., 0] <= 0.0
+        assert np.abs(a["reflection"][car] - b["reflection"][car]).mean() < 1e-3
+        ref = b["reflection"][bg]
+        assert ref.mean() > 0.05  # the pass shows a sky and a ground
+        rel.append(np.abs(a["reflection"][bg] - ref).max(axis=-1) / np.maximum(ref.max(axis=-1), 0.05))
+    rel = np.concatenate(rel)
+    # one jittered sample per pixel against the pixel centre: equal up to the skyline's texels
+    assert np.median(rel) < 0.02 and (rel < 0.1).mean() > 0.95, (np.median(rel), (rel < 0.1).mean())
+
+
+def test_an_environment_set_made_with_the_cycles_pass_resumes_with_it(tmp_path):
+    """A set whose recipe predates the lookup (no `environment_pass` in its identity) is resumed
+    and extended with Cycles' Environment pass, so its samples stay byte-identical."""
+    from blender_gen.generate import legacy_recipe
+    from blender_gen.recipe import Recipe
+
+    new = Recipe(kind="intrinsics", seed=4, width=96, height=48, background="environment")
+    assert new.identity()["environment_pass"] == "lookup"
+    old = Recipe(kind="intrinsics", seed=4, width=96, height=48, background="environment", environment_pass="cycles")
+    assert "environment_pass" not in old.identity()
+    (tmp_path / "dataset.json").write_text(json.dumps({"recipe": old.identity()}))
+    assert legacy_recipe(new, tmp_path).identity() == old.identity()
+    (tmp_path / "dataset.json").write_text(json.dumps({"recipe": new.identity()}))
+    assert legacy_recipe(new, tmp_path) == new
+    assert "environment_pass" not in Recipe(kind="intrinsics", seed=4, width=96, height=48).identity()
+
+
 def test_the_background_option_does_not_hide_a_shared_sample_recipe(tmp_path):
     """An evaluation PBR set with the training intrinsics' recipe shows their poses, whichever
     background the intrinsics' reflection layer has: the protocol check still refuses it."""

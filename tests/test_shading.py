@@ -104,6 +104,23 @@ def test_the_shader_renderer_shades_by_its_normals_and_replaces_ablated_maps():
     assert (r_res(stacks) - ref).abs().max() <= 0.25 + 1e-6 or r_res.light is not r.light
 
 
+def test_the_shader_draws_the_environment_behind_the_car_as_stored_or_scaled_by_the_gain():
+    stacks, masks = _blobs(2)
+    sky = torch.linspace(-0.6, 0.8, 64).view(1, 1, 1, 64).expand(2, 3, 32, 64)
+    stacks[:, 6:9] = torch.where(masks > 0, stacks[:, 6:9], sky)  # an environment in the reflection layer
+    light = torch.zeros(2, 3, 10)
+    light[..., 0], light[..., 9] = 1.0, 0.3  # ambient, and a reflection gain of 0.3
+    env = ShaderRenderer(list("NAF"), 8, 2, 1, 0, "instance", residual=0.0, background="environment")
+    gain = ShaderRenderer(list("NAF"), 8, 2, 1, 0, "instance", residual=0.0)
+    a, b = env(stacks, light), gain(stacks, light)
+    bg, car = (masks == 0).expand(-1, 3, -1, -1), (masks > 0).expand(-1, 3, -1, -1)
+    assert torch.allclose(a[bg], sky.expand(2, 3, 32, 64)[bg], atol=1e-5)  # the stored environment, at unit gain
+    assert (b[bg] < a[bg] - 0.05).float().mean() > 0.9  # "gain": the car's gain dims it
+    assert torch.equal(a[car], b[car])  # the car is shaded alike
+    with pytest.raises(ConfigError, match="model.shader_background"):
+        load_config("cpu-small", ["model.shader_background=sky"])
+
+
 def test_shading_terms_are_logged_and_the_shader_is_chosen_by_config():
     cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "loss.w_shading_ren=3",
                                                         "loss.w_shading_dec=1"])

@@ -77,6 +77,10 @@ class ModelConfig:
     # normals did not (S1 seed 0 5.9 deg worse at step 1375, seed 1 level: docs/normals_from_shading.md)
     shader_gain: str = "per_image"
     shader_gain_start: float = 0.25
+    # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
+    # reflection gain fitted on the car scaling the environment too; "environment" = lin(F) as the
+    # intrinsics store it (the scene behind the car, drawn apart from the car's shading and gain).
+    shader_background: str = "gain"
     # D_I (3 ch) and D_M (9 ch): multi-scale PatchGAN, 2 scales (the paper)
     d_ndf: int = 64
     d_layers: int = 3
@@ -365,6 +369,7 @@ def validate(cfg: Config) -> Config:
     _choice("model.shader_residual_on", m.shader_residual_on, ("background", "everywhere"))
     _choice("model.shader_lighting", m.shader_lighting, ("per_image", "global"))
     _choice("model.shader_gain", m.shader_gain, ("per_image", "shared"))
+    _choice("model.shader_background", m.shader_background, ("gain", "environment"))
     if not 0.001 <= m.shader_gain_start <= 10:  # NaN fails too
         raise ConfigError(f"model.shader_gain_start: expected a gain in [0.001, 10], got {m.shader_gain_start!r}")
     if not 0 <= cfg.run.ema_decay < 1:

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .sanity import srgb_encode
-from .shading import _C0, _C1, render_sh
+from .shading import _C0, _C1, linear, render_sh
 
 # Adam moves a parameter by about lr per step; the shared gain's log moves this many times faster
 # (an equalised learning rate, as StyleGAN's), so it can travel from its start to the data's in a run
@@ -194,13 +194,18 @@ class ShaderRenderer(nn.Module):
     placements measured worse (docs/normals_from_shading.md): on the car R and H agreed on a hidden
     code again, on the background its noise told H which images were R's.
 
+    Background (`background`): "gain" scales the reflection layer by the car's gain there too;
+    "environment" shows it as stored (the scene behind the car), apart from the car's fit.
+
     Takes the full 9-channel stack; a map outside `inputs` (an ablation) is replaced by what carries
     no information: a camera-facing normal, mid-grey albedo, no reflection."""
 
     def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
-                 residual: float, residual_on: str = "background", bank: int = 0, shared_gain: float = 0.0):
+                 residual: float, residual_on: str = "background", bank: int = 0, shared_gain: float = 0.0,
+                 background: str = "gain"):
         super().__init__()
         self.inputs = inputs
+        self.background = background
         self.residual = residual
         self.residual_on = residual_on
         # lightings fitted to real images (9 SH coefficients and a reflection gain per colour channel),
@@ -260,7 +265,11 @@ class ShaderRenderer(nn.Module):
         light, gain = (lighting[..., :9], lighting[..., 9]) if lighting is not None else self.default_lighting()
         if self.log_gain is not None:
             gain = self.shared_gain()
-        base = srgb_encode(render_sh(n, a, f, light, gain)) * 2 - 1
+        lin = render_sh(n, a, f, light, gain)
+        if self.background == "environment":  # no object: the scene behind the car, at unit gain
+            obj = m[:, 0:3].float().norm(dim=1, keepdim=True) > 0.5
+            lin = torch.where(obj, lin, linear(f.float()))
+        base = srgb_encode(lin) * 2 - 1
         if self.net is None:
             return base
         sel = torch.cat([m[:, CHANNELS[c]] for c in self.inputs] + [base.to(m.dtype)], dim=1)
