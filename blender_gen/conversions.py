@@ -62,7 +62,17 @@ def preview_srgb8(layer: str, x: np.ndarray) -> np.ndarray:
     """A layer as an 8-bit sRGB picture for people: normals as (n + 1) / 2."""
     if layer == "normal":
         img = (np.clip(np.asarray(x, dtype=np.float64), -1, 1) + 1.0) * 0.5
-    elif layer in ("mask", "material"):
+    elif layer == "depth":  # near bright, far dark, over this picture's range; background black
+        d = np.asarray(x, dtype=np.float64)[..., 0]
+        on = d > 0
+        lo, hi = (d[on].min(), d[on].max()) if on.any() else (0.0, 1.0)
+        img = np.repeat(np.where(on, 1.0 - 0.8 * (d - lo) / max(hi - lo, 1e-6), 0.0)[..., None], 3, axis=-1)
+    elif layer == "part":  # a fixed colour per part index (golden-ratio hues), background black
+        k = np.round(np.asarray(x)[..., 0]).astype(np.int64)
+        hue = (k * 0.618034) % 1.0
+        rgb = np.stack([np.abs(hue * 6 - 3) - 1, 2 - np.abs(hue * 6 - 2), 2 - np.abs(hue * 6 - 4)], axis=-1)
+        img = np.where((k > 0)[..., None], 0.25 + 0.75 * np.clip(rgb, 0, 1), 0.0)
+    elif layer in ("mask", "material", "gloss"):
         img = np.repeat(np.clip(np.asarray(x, dtype=np.float64), 0, 1), 3, axis=-1) if x.shape[-1] == 1 else x
     else:
         img = linear_to_srgb(x)

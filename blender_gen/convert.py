@@ -23,6 +23,9 @@ PNG16_ENCODING = {
     "rgb": "uint16 = round(clip(linear, 0, 1) * 65535); linear light, not sRGB; values above 1 clipped",
     "mask": "uint16 = round(coverage * 65535), grey",
     "material": "uint16 = material id (0 background, 1-18 part materials, 19 body paint), grey",
+    "depth": "uint16 = round(metres * 1000), millimetres along the view axis (0 on the background; at most 65.535 m)",
+    "part": "uint16 = part index (0 background; names in dataset.json \"parts\"), grey",
+    "gloss": "uint16 = round(gloss * 65535), grey",
 }
 
 
@@ -31,8 +34,10 @@ def _png16(path: Path, layer: str, a: np.ndarray) -> None:
 
     if layer == "normal":
         v = (np.clip(a, -1, 1) + 1) * 0.5 * 65535
-    elif layer == "material":
+    elif layer in ("material", "part"):
         v = a
+    elif layer == "depth":
+        v = np.clip(a * 1000.0, 0, 65535)
     else:
         v = np.clip(a, 0, 1) * 65535
     v = np.round(v).astype(np.uint16)

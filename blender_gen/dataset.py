@@ -43,7 +43,13 @@ LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
     "mask": ("Y",),
     "material": ("Y",),  # material id: 0 background, 1..18 part materials, 19 body paint
     "rgb": ("R", "G", "B"),
+    "depth": ("Z",),  # metres along the camera's view axis; 0 on the background
+    "part": ("Y",),  # part index: 0 background, k = PARTS[k - 1] (dataset.json "parts")
+    "gloss": ("Y",),  # the part's glossiness (the reflection layer's weight); 0 on the background
 }
+# Layers every new intrinsics or PBR sample also holds; sets made before them have none, and
+# their dataset.json lists what they hold ("layers")
+EXTRA_LAYERS = ("depth", "part", "gloss")
 KIND_LAYERS: dict[str, tuple[str, ...]] = {
     "intrinsics": ("normal", "albedo", "reflection", "mask", "material"),
     "pbr": ("rgb", "normal", "albedo", "reflection", "mask", "material"),
@@ -298,8 +304,9 @@ class Dataset:
 
     @property
     def layers(self) -> tuple[str, ...]:
-        """The layers every sample of this kind holds."""
-        return KIND_LAYERS[self.kind]
+        """The layers every sample of this set holds (dataset.json's list; the kind's for older sets)."""
+        listed = self.info.get("layers")
+        return tuple(listed) if isinstance(listed, list) and listed else KIND_LAYERS[self.kind]
 
     def sample(self, i: int, layers: Iterable[str] | None = None, verify: bool = True) -> dict:
         """Sample i (by position) as a dict: "index" (its sample index), "meta" (its manifest row:

@@ -20,8 +20,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .dataset import (KIND_LAYERS, MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
+from .dataset import (MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
                       folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, verify_rows, write_manifest)
+from .cars.spec import PARTS
 from .recipe import Recipe, identity_diff
 
 
@@ -87,7 +88,8 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
         "shard": list(shard),
         "software": software_versions(),
         "recipe": identity,
-        "layers": list(KIND_LAYERS[recipe.kind]),
+        "layers": list(recipe.layers()),
+        **({"parts": ["background", *PARTS]} if "part" in recipe.layers() else {}),  # part index -> name
     }, rows=good)
     return writer, good
 
@@ -219,13 +221,18 @@ def _unstarted(out: Path) -> None:
 
 
 def legacy_recipe(recipe: Recipe, out: Path) -> Recipe:
-    """The recipe as an existing set at `out` was made: an environment-background set from before
-    the NumPy lookup keeps Cycles' Environment pass, so it resumes and extends byte-identically."""
-    if recipe.background != "environment" or not (out / "dataset.json").exists():
+    """The recipe as an existing set at `out` was made, so it resumes and extends byte-identically:
+    an environment-background set from before the NumPy lookup keeps Cycles' Environment pass, and
+    a set from before the extra layers (depth, part, gloss) keeps the layers it has."""
+    if not (out / "dataset.json").exists():
         return recipe
     old = read_info(out).get("recipe", {})
-    if old.get("background") == "environment" and "environment_pass" not in old:
-        return replace(recipe, environment_pass="cycles")
+    if not old:
+        return recipe
+    if recipe.background == "environment" and old.get("background") == "environment" and "environment_pass" not in old:
+        recipe = replace(recipe, environment_pass="cycles")
+    if "extra_layers" not in old:
+        recipe = replace(recipe, extra_layers=())
     return recipe
 
 

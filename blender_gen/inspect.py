@@ -8,13 +8,14 @@ import numpy as np
 from tqdm import tqdm
 
 from .conversions import preview_srgb8
-from .dataset import KIND_LAYERS, DatasetError, open_dataset, read_exr, save_png, sha256_file
+from .dataset import DatasetError, open_dataset, read_exr, save_png, sha256_file
 
 
 def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = True) -> dict:
     """Verify every sample and gather statistics. `problems` lists what is wrong."""
     ds = open_dataset(root)
-    layers = KIND_LAYERS[ds.kind]
+    layers = ds.layers
+    n_parts = len(ds.info.get("parts", [])) or None
     w, h = ds.resolution
     problems: list[str] = []
     bad_files: list[str] = []
@@ -56,6 +57,14 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
             s["min"], s["max"] = min(s["min"], float(arr.min())), max(s["max"], float(arr.max()))
             s["sum"] += float(arr.sum(dtype=np.float64))
             s["n"] += arr.size
+        if "mask" in data:  # the extra layers agree with the mask and their own ranges
+            on, off = data["mask"][..., 0] > 0.5, data["mask"][..., 0] <= 0
+            if "depth" in data and ((data["depth"][on] <= 0).any() or (data["depth"][off] != 0).any()):
+                problems.append(f"{row['file']}: depth is not positive on the car and 0 off it")
+            if "part" in data and ((data["part"][on] < 1).any() or (n_parts and (data["part"] >= n_parts).any())):
+                problems.append(f"{row['file']}: part indices outside 1..{(n_parts or 0) - 1} on the car")
+            if "gloss" in data and ((data["gloss"] < 0).any() or (data["gloss"] > 1).any()):
+                problems.append(f"{row['file']}: gloss outside [0, 1]")
         if "normal" in data and "mask" in data:
             on = data["mask"][..., 0] > 0.5
             if on.any():
@@ -81,7 +90,8 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
 
 
 def preview_grid(root: Path, out: Path, count: int = 6, skip: frozenset[str] = frozenset()) -> Path:
-    """A PNG with one row per sample: (rgb,) normal, albedo, reflection in sRGB.
+    """A PNG with one row per sample: (rgb,) normal, albedo, reflection in sRGB, then depth (near
+    bright), part (a colour per part) and gloss where the set has them.
 
     Samples whose files are named in `skip` (failed verification) are left out.
     """
@@ -89,7 +99,7 @@ def preview_grid(root: Path, out: Path, count: int = 6, skip: frozenset[str] = f
     usable = [i for i, r in enumerate(ds.rows) if r["file"] not in skip]
     if not usable:
         raise DatasetError(f"{root}: no finished samples to preview")
-    cols = [c for c in ("rgb", "normal", "albedo", "reflection") if c in KIND_LAYERS[ds.kind]]
+    cols = [c for c in ("rgb", "normal", "albedo", "reflection", "depth", "part", "gloss") if c in ds.layers]
     picks = [usable[k] for k in np.linspace(0, len(usable) - 1, min(count, len(usable))).round().astype(int)]
     rows = []
     for i in picks:

@@ -297,10 +297,18 @@ class SampleRenderer:
         if self.recipe.kind == "intrinsics" and self.world_env is not None:
             # the AOV covers the car, the Environment pass the rest: edges blend by coverage
             reflection = reflection + np.maximum(get("Environment", "RGB"), 0.0)
-        return {
+        layers = {
             "normal": normal, "albedo": get("albedo", "RGB"), "reflection": reflection,
             "mask": mask, "material": np.round(get("material", "X")),
         }
+        if self.recipe.extra_layers:
+            # AOVs average over a pixel's samples: depth per unit of coverage (the car's own distance
+            # at its edges), ids rounded as the material's, gloss weighted by coverage as albedo is
+            depth = get("depth", "X") / np.maximum(mask, 1e-6)
+            extra = {"depth": np.where(on, depth, 0.0).astype(np.float32), "part": np.round(get("part", "X")),
+                     "gloss": get("gloss", "X")}
+            layers.update({k: extra[k] for k in self.recipe.extra_layers})
+        return layers
 
     def render(self, index: int, out_dir: Path) -> dict:
         """Render sample `index` into `out_dir` and return its manifest row."""

@@ -17,11 +17,14 @@ import mathutils
 import numpy as np
 
 from .camera import CameraPose
+from .cars.spec import PARTS
 from .geometry import Mesh
 from .materials import Material
 
-AOVS = (("normal", "COLOR"), ("albedo", "COLOR"), ("reflection", "COLOR"), ("mask", "VALUE"), ("material", "VALUE"))
+AOVS = (("normal", "COLOR"), ("albedo", "COLOR"), ("reflection", "COLOR"), ("mask", "VALUE"), ("material", "VALUE"),
+        ("depth", "VALUE"), ("part", "VALUE"), ("gloss", "VALUE"))
 ATTR_ALBEDO, ATTR_GLOSS, ATTR_MATERIAL, ATTR_ENV_ROT = "iae_albedo", "iae_gloss", "iae_material", "iae_env_rot"
+ATTR_PART = "iae_part"  # 1 + the part's position in cars.spec.PARTS
 # Physical parameters for the PBR shader, also object attributes (see `set_material_attrs`).
 PBR_ATTRS = {
     "iae_metallic": "Metallic", "iae_roughness": "Roughness", "iae_transmission": "Transmission Weight",
@@ -112,12 +115,12 @@ def _aov(nt, name: str, socket, x: float, y: float):
     node = nt.nodes.new("ShaderNodeOutputAOV")
     node.aov_name = name
     node.location = (x, y)
-    nt.links.new(socket, node.inputs["Value" if name in ("mask", "material") else "Color"])
+    nt.links.new(socket, node.inputs["Value" if dict(AOVS)[name] == "VALUE" else "Color"])
     return node
 
 
 def add_intrinsic_aovs(nt: bpy.types.NodeTree, env_node: bpy.types.Node) -> None:
-    """AOV outputs for normal, albedo, reflection, mask and material id.
+    """AOV outputs for normal, albedo, reflection, mask, material id, part index, gloss and depth.
 
     normal: shading normal in Cycles' camera space (+Z forward), turned to OpenGL (+Z back).
     reflection: the environment along the view ray mirrored about the normal, times gloss.
@@ -153,6 +156,10 @@ def add_intrinsic_aovs(nt: bpy.types.NodeTree, env_node: bpy.types.Node) -> None
 
     _aov(nt, "albedo", _attr(nt, ATTR_ALBEDO, 0, 100).outputs["Color"], 600, 100)
     _aov(nt, "material", _attr(nt, ATTR_MATERIAL, 0, -500).outputs["Fac"], 600, -300)
+    _aov(nt, "part", _attr(nt, ATTR_PART, 0, -700).outputs["Fac"], 600, -700)
+    _aov(nt, "gloss", _attr(nt, ATTR_GLOSS, 0, -900).outputs["Fac"], 600, -900)
+    cam = nt.nodes.new("ShaderNodeCameraData")  # distance along the camera's view axis
+    _aov(nt, "depth", cam.outputs["View Z Depth"], 600, -1100)
     one = nt.nodes.new("ShaderNodeValue")
     one.outputs[0].default_value = 1.0
     _aov(nt, "mask", one.outputs[0], 600, -500)
@@ -255,6 +262,7 @@ def add_car(name: str, category: str, parts: dict[str, Mesh], part_material: dic
         obj = bpy.data.objects.new(f"{name}.{part}", me)
         obj.parent = root
         coll.objects.link(obj)
+        obj[ATTR_PART] = float(PARTS.index(part) + 1)
         mat_name = part_material[part]
         if mat_name != "paint":
             set_material_attrs(obj, materials[mat_name])

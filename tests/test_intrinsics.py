@@ -85,6 +85,50 @@ def test_reflection_is_zero_without_gloss_and_matches_the_numpy_reference(render
     assert (rel < 0.1).mean() > 0.95, (rel < 0.1).mean()
 
 
+def test_depth_part_and_gloss_layers_agree_with_the_scene(renderer, rendered):
+    """depth: metres along the view axis (the car's nearest and farthest points bound it); part: the
+    part whose material the material layer shows; gloss: that material's glossiness."""
+    from blender_gen.camera import project
+    from blender_gen.cars.spec import PARTS
+
+    table = load_materials()
+    for layers, d in rendered:
+        on, off = layers["mask"][..., 0] > 0.5, layers["mask"][..., 0] <= 0
+        depth, part = layers["depth"][..., 0], layers["part"][..., 0].astype(int)
+        assert np.all(depth[off] == 0) and np.all(part[off] == 0) and np.all(layers["gloss"][off] == 0)
+        _, z = project(d["car"].points, d["pose"], depth.shape[1], depth.shape[0])
+        assert z.min() * 0.97 <= depth[on].min() <= z.min() * 1.1, (depth[on].min(), z.min())
+        assert depth[on].max() <= z.max() * 1.03
+        mats = d["car"].part_material
+        for k in np.unique(part[on]):
+            name = mats[PARTS[k - 1]]
+            material = d["paint"] if name == "paint" else table.parts[name]
+            want_id = BODY_MATERIAL_ID if name == "paint" else material.id
+            px = (part == k) & on
+            assert np.mean(layers["material"][..., 0][px] == want_id) > 0.98, PARTS[k - 1]
+            assert np.allclose(layers["gloss"][..., 0][px], material.gloss, atol=2e-3), PARTS[k - 1]
+
+
+def test_a_set_made_before_the_extra_layers_is_extended_without_them(tmp_path):
+    """Its samples keep the layers it lists, so a resumed or extended set never mixes two formats;
+    a new set lists and holds depth, part and gloss with the part names."""
+    from blender_gen.dataset import open_dataset
+    from blender_gen.generate import generate
+    from blender_gen.recipe import Recipe
+
+    old = Recipe(kind="intrinsics", seed=3, width=64, height=32, extra_layers=())
+    generate(old, tmp_path / "old", 1, progress=False)
+    run_gen("intrinsics", "--out", str(tmp_path / "old"), "--count", "2", "--resolution", "64x32", "--seed", "3",
+            "--background", "black", "--quiet")
+    ds = open_dataset(tmp_path / "old")
+    assert ds.layers == ("normal", "albedo", "reflection", "mask", "material") and "parts" not in ds.info
+    assert [sorted(read_exr(ds.root / r["file"])) for r in ds.rows] == [sorted(ds.layers)] * 2
+    run_gen("intrinsics", "--out", str(tmp_path / "new"), "--count", "1", "--resolution", "64x32", "--quiet")
+    new = open_dataset(tmp_path / "new")
+    assert new.layers[-3:] == ("depth", "part", "gloss") and new.info["parts"][1] == "body"
+    assert set(read_exr(new.root / new.rows[0]["file"])) == set(new.layers)
+
+
 def test_each_part_object_carries_its_material(renderer):
     from blender_gen.cars import load_part_materials
 
