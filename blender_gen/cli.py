@@ -460,6 +460,21 @@ def inspect_cmd(root: Path, grid: Path | None, grid_samples: int, max_stats: int
         sys.exit(1)
 
 
+@main.command("status")
+@click.argument("folders", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the status as JSON (every missing index listed).")
+def status_cmd(folders: tuple[Path, ...], as_json: bool) -> None:
+    """The shards of one sharded run: missing and damaged samples, shards not started, whether it can be merged;
+    exit 1 until it can. Rerunning an unfinished shard's command repairs exactly what is listed."""
+    from .status import format_status, run_status
+
+    with one_line_errors():
+        st = run_status(list(folders))
+    click.echo(json.dumps(st, indent=2) if as_json else format_status(st))
+    if not st["ready_to_merge"]:
+        sys.exit(1)
+
+
 @main.command("convert")
 @click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--to", "fmt", required=True, type=click.Choice(["npy", "png16"]),

@@ -129,6 +129,29 @@ def test_a_set_made_before_the_extra_layers_is_extended_without_them(tmp_path):
     assert set(read_exr(new.root / new.rows[0]["file"])) == set(new.layers)
 
 
+def test_status_lists_what_a_sharded_run_lacks_and_a_rerun_of_those_shards_repairs_it(tmp_path):
+    from blender_gen.status import run_status
+
+    common = ["--count", "5", "--resolution", "64x32", "--seed", "2", "--background", "black", "--quiet"]
+    for i in (0, 1):
+        run_gen("intrinsics", "--out", str(tmp_path / f"part{i}"), "--shard", f"{i}/2", *common)
+    parts = [tmp_path / "part0", tmp_path / "part1"]
+    assert run_status(parts)["ready_to_merge"]
+    (tmp_path / "part0" / "samples" / "000002.exr").write_bytes(b"damaged")  # a sample damaged on disk
+    man = tmp_path / "part1" / "manifest.jsonl"
+    man.write_text("\n".join(man.read_text().splitlines()[:-1]) + "\n")  # a shard killed before its last row
+    st = run_status(parts)
+    assert not st["ready_to_merge"]
+    assert [(s["failed"], s["missing"]) for s in st["shards"]] == [([2], []), ([], [3])]
+    assert run_status(parts[:1])["absent_shards"] == [1]
+    out = subprocess.run([sys.executable, "-m", "blender_gen.cli", "status", *map(str, parts)], capture_output=True,
+                         text=True, cwd=ROOT)
+    assert out.returncode == 1 and "rerun shard(s) 0,1 of 2" in out.stdout, out.stdout
+    for i in (0, 1):  # the shards' own commands again: only what status listed is rendered
+        run_gen("intrinsics", "--out", str(tmp_path / f"part{i}"), "--shard", f"{i}/2", *common)
+    assert run_status(parts)["ready_to_merge"]
+
+
 def test_each_part_object_carries_its_material(renderer):
     from blender_gen.cars import load_part_materials
 
