@@ -46,10 +46,27 @@ LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
     "depth": ("Z",),  # metres along the camera's view axis; 0 on the background
     "part": ("Y",),  # part index: 0 background, k = PARTS[k - 1] (dataset.json "parts")
     "gloss": ("Y",),  # the part's glossiness (the reflection layer's weight); 0 on the background
+    # PBR light transport (Cycles' passes, before denoising): on the car
+    # rgb_noisy = diffuse_color x diffuse_shading + glossy + transmission + emission + environment
+    "rgb_noisy": ("R", "G", "B"),
+    "diffuse_color": ("R", "G", "B"),
+    "diffuse_shading": ("R", "G", "B"),  # direct + indirect diffuse light
+    "glossy": ("R", "G", "B"),  # glossy colour x (direct + indirect glossy light)
+    "transmission": ("R", "G", "B"),  # transmission colour x (direct + indirect transmitted light)
+    "emission": ("R", "G", "B"),
+    "environment": ("R", "G", "B"),  # the environment seen directly (background, through glass)
 }
 # Layers every new intrinsics or PBR sample also holds; sets made before them have none, and
 # their dataset.json lists what they hold ("layers")
 EXTRA_LAYERS = ("depth", "part", "gloss")
+LIGHT_LAYERS = ("rgb_noisy", "diffuse_color", "diffuse_shading", "glossy", "transmission", "emission", "environment")
+KIND_EXTRA_LAYERS = {"intrinsics": EXTRA_LAYERS, "pbr": EXTRA_LAYERS + LIGHT_LAYERS}
+
+
+def recompose(layers: dict) -> np.ndarray:
+    """A PBR sample's image from its light layers; equals `rgb_noisy` on the car (coverage 1)."""
+    return (layers["diffuse_color"] * layers["diffuse_shading"] + layers["glossy"] + layers["transmission"]
+            + layers["emission"] + layers["environment"])
 KIND_LAYERS: dict[str, tuple[str, ...]] = {
     "intrinsics": ("normal", "albedo", "reflection", "mask", "material"),
     "pbr": ("rgb", "normal", "albedo", "reflection", "mask", "material"),

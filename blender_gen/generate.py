@@ -223,7 +223,7 @@ def _unstarted(out: Path) -> None:
 def legacy_recipe(recipe: Recipe, out: Path) -> Recipe:
     """The recipe as an existing set at `out` was made, so it resumes and extends byte-identically:
     an environment-background set from before the NumPy lookup keeps Cycles' Environment pass, and
-    a set from before the extra layers (depth, part, gloss) keeps the layers it has."""
+    a set from before the extra layers (depth, part, gloss, light passes) keeps the layers it has."""
     if not (out / "dataset.json").exists():
         return recipe
     old = read_info(out).get("recipe", {})
@@ -231,8 +231,8 @@ def legacy_recipe(recipe: Recipe, out: Path) -> Recipe:
         return recipe
     if recipe.background == "environment" and old.get("background") == "environment" and "environment_pass" not in old:
         recipe = replace(recipe, environment_pass="cycles")
-    if "extra_layers" not in old:
-        recipe = replace(recipe, extra_layers=())
+    if tuple(old.get("extra_layers", ())) != recipe.extras():
+        recipe = replace(recipe, extra_layers=tuple(old.get("extra_layers", ())))
     return recipe
 
 

@@ -15,9 +15,15 @@ import numpy as np
 
 from . import scene as S
 from .conversions import preview_srgb8
-from .dataset import save_png
+from .dataset import LIGHT_LAYERS, save_png
 from .quiet import without_lines
 from .render import SampleRenderer
+
+
+# Cycles' passes behind the light layers (dataset.LIGHT_LAYERS)
+LIGHT_PASSES = ("diffuse_color", "diffuse_direct", "diffuse_indirect", "glossy_color", "glossy_direct",
+                "glossy_indirect", "transmission_color", "transmission_direct", "transmission_indirect", "emit",
+                "environment")
 
 
 class PbrRenderer(SampleRenderer):
@@ -48,8 +54,13 @@ class PbrRenderer(SampleRenderer):
         cy.caustics_reflective = False
         cy.caustics_refractive = False
         cy.sample_clamp_indirect = 10.0  # tames fireflies from the HDR sun
-        self.scene.view_layers[0].use_pass_combined = True
+        layer = self.scene.view_layers[0]
+        layer.use_pass_combined = True
         self.scene.render.film_transparent = False
+        if set(LIGHT_LAYERS) & set(self.recipe.extras()):  # Cycles' light passes, and the image they add up to
+            for p in LIGHT_PASSES:
+                setattr(layer, f"use_pass_{p}", True)
+            layer.cycles.denoising_store_passes = True  # "Noisy Image": the passes sum to it, not to the denoised one
 
     def _setup_lighting(self) -> None:
         self.world_env, self.world_turn = S.environment_world(self.scene, self.env_node.image)
@@ -60,7 +71,21 @@ class PbrRenderer(SampleRenderer):
     def _read_passes(self) -> dict[str, np.ndarray]:
         layers = super()._read_passes()
         ch = self._channels
-        rgb = np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
+
+        def get(name: str) -> np.ndarray:
+            return np.stack([ch[f"ViewLayer.{name}.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
+
+        rgb = get("Combined")
+        wanted = set(self.recipe.extras())
+        if wanted & set(LIGHT_LAYERS):
+            light = {
+                "rgb_noisy": get("Noisy Image"), "diffuse_color": get("Diffuse Color"),
+                "diffuse_shading": get("Diffuse Direct") + get("Diffuse Indirect"),
+                "glossy": get("Glossy Color") * (get("Glossy Direct") + get("Glossy Indirect")),
+                "transmission": get("Transmission Color") * (get("Transmission Direct") + get("Transmission Indirect")),
+                "emission": get("Emission"), "environment": get("Environment"),
+            }
+            layers.update({k: v for k, v in light.items() if k in wanted})
         return {"rgb": np.maximum(rgb, 0.0), **layers}
 
     def _write_preview(self, layers: dict, out_dir: Path, index: int) -> None:

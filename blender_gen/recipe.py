@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraRanges, Orbit
-from .dataset import EXTRA_LAYERS, KIND_LAYERS
+from .dataset import KIND_EXTRA_LAYERS, KIND_LAYERS
 from .envmap import DEFAULT_SKY_VARIANTS, HELDOUT_SKY_VARIANTS, PROCEDURAL_PREFIX, PROCEDURAL_SETS
 
 KINDS = ("intrinsics", "pbr")
@@ -44,12 +44,16 @@ class Recipe:
     # pixel's view ray in NumPy (no world to render: as fast as "black"); "cycles" = Cycles'
     # Environment pass behind the car as a holdout (sets made before "lookup" existed).
     environment_pass: str = "lookup"
-    # Layers beyond the kind's first ones (depth, part, gloss); () = a set made before them.
-    extra_layers: tuple[str, ...] = EXTRA_LAYERS
+    # Layers beyond the kind's first ones (depth, part, gloss; PBR: the light passes too); None = all
+    # of the kind's, () = a set made before them.
+    extra_layers: tuple[str, ...] | None = None
+
+    def extras(self) -> tuple[str, ...]:
+        return KIND_EXTRA_LAYERS[self.kind] if self.extra_layers is None else tuple(self.extra_layers)
 
     def layers(self) -> tuple[str, ...]:
         """The layers each sample of this recipe holds, in the order dataset.json lists them."""
-        return KIND_LAYERS[self.kind] + tuple(self.extra_layers)
+        return KIND_LAYERS[self.kind] + self.extras()
 
     def identity(self) -> dict:
         """The fields that define the samples; files are named by content, not by path."""
@@ -73,8 +77,8 @@ class Recipe:
             del d["background"]
         if self.background == "black" or self.environment_pass == "cycles":
             del d["environment_pass"]  # likewise sets made before the lookup existed
-        if self.extra_layers:
-            d["extra_layers"] = list(self.extra_layers)
+        if self.extras():
+            d["extra_layers"] = list(self.extras())
         else:
             del d["extra_layers"]  # and sets made before the extra layers
         if self.orbit is None:  # per-sample Cycles noise by frame number (render.py); older sets

@@ -301,13 +301,13 @@ class SampleRenderer:
             "normal": normal, "albedo": get("albedo", "RGB"), "reflection": reflection,
             "mask": mask, "material": np.round(get("material", "X")),
         }
-        if self.recipe.extra_layers:
+        if self.recipe.extras():
             # AOVs average over a pixel's samples: depth per unit of coverage (the car's own distance
             # at its edges), ids rounded as the material's, gloss weighted by coverage as albedo is
             depth = get("depth", "X") / np.maximum(mask, 1e-6)
             extra = {"depth": np.where(on, depth, 0.0).astype(np.float32), "part": np.round(get("part", "X")),
                      "gloss": get("gloss", "X")}
-            layers.update({k: extra[k] for k in self.recipe.extra_layers})
+            layers.update({k: extra[k] for k in self.recipe.extras() if k in extra})
         return layers
 
     def render(self, index: int, out_dir: Path) -> dict:

@@ -83,9 +83,38 @@ def test_pbr_cli_dataset_previews_determinism_and_inspect(tmp_path):
     assert len(heldout) == 6 and {r["car"]["name"] for r in ra} <= heldout
     assert sorted(p.name for p in (a / "previews").glob("*.png")) == ["000000.png", "000001.png"]
     layers = read_exr(a / ra[0]["file"])
-    assert set(layers) == {"rgb", "normal", "albedo", "reflection", "mask", "material"}
+    assert set(layers) == {"rgb", "normal", "albedo", "reflection", "mask", "material", "depth", "part", "gloss",
+                           "rgb_noisy", "diffuse_color", "diffuse_shading", "glossy", "transmission", "emission",
+                           "environment"} == set(info["layers"])
     s = json.loads(run_gen("inspect", str(a), "--json", "--quiet").stdout)
     assert s["complete"] and s["kind"] == "pbr"
+
+
+def test_the_light_layers_add_up_to_the_image_and_inspect_checks_it(tmp_path):
+    """Cycles' light passes, stored per sample, recompose the (undenoised) image on the car; the
+    denoised `rgb` stays beside it; inspect measures the identity and fails a sample that breaks it."""
+    from blender_gen.dataset import recompose, write_exr
+
+    out = tmp_path / "p"
+    run_gen("pbr", "--out", str(out), "--count", "4", "--resolution", "128x64", "--seed", "3", "--quiet")
+    rows = read_manifest(out / "manifest.jsonl")
+    for r in rows:
+        x = read_exr(out / r["file"])
+        car = x["mask"][..., 0] >= 1.0
+        rel = np.abs(recompose(x)[car] - x["rgb_noisy"][car]).mean() / np.abs(x["rgb_noisy"][car]).mean()
+        assert rel < 2e-3, rel  # exact in Cycles; each layer rounded to half float
+        assert x["diffuse_shading"][car].mean() > 0.05 and x["glossy"][car].mean() > 0.0
+        # the denoiser changes the image, not its level
+        assert abs(x["rgb"][car].mean() / x["rgb_noisy"][car].mean() - 1) < 0.1
+    s = json.loads(run_gen("inspect", str(out), "--json", "--quiet").stdout)
+    assert s["complete"] and s["recomposition_error_max"] < 2e-3
+    broken = read_exr(out / rows[1]["file"])
+    broken["glossy"] = broken["glossy"] * 3  # a sample whose glossy light no longer adds up
+    write_exr(out / rows[1]["file"], broken)
+    rows[1]["sha256"] = sha256_file(out / rows[1]["file"])
+    (out / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    proc = run_gen("inspect", str(out), "--quiet", check=False)
+    assert proc.returncode == 1 and "add up to rgb_noisy" in proc.stdout, proc.stdout
 
 
 def test_pbr_resumes_and_rejects_bad_input(tmp_path):
