@@ -11,6 +11,7 @@ at once on one GPU (or, slowly, on the CPU) without EXR decoding.
            s0        "real" = the analytic shading (train.sanity.shade) of other intrinsics
   run    one variant and seed -> a JSON-lines curve of probe figures
   grid   variants x seeds as parallel processes (one thread each)
+  picture  saved weights of several runs on the first probe images, labelled
 
   python bench/objective_sweep.py pack --setting s0 --intrinsics I --probe P --out s0.npz
   python bench/objective_sweep.py grid --data s0.npz --variants bench/variants.toml --seeds 0 1 --steps 8000
@@ -195,6 +196,48 @@ def run(args) -> None:
                    for k, v in model.state_dict().items()}, args.save)
 
 
+def picture(args) -> None:
+    """Saved weights of several runs (`grid --save-dir`) on the first probe images of a pack: one row
+    per image (the image, then each layer's ground truth and every run's H), labelled, enlarged."""
+    import torch
+    from PIL import Image, ImageDraw
+    from safetensors.torch import load_file
+
+    from train.config import load_config
+    from train.model import build_model
+
+    z = np.load(args.data)
+    px, py = (torch.from_numpy(unpack(load_packed(z, k))[: args.samples]) for k in ("PX", "PY"))
+    h, w = px.shape[2:]
+    preds = []
+    for spec in args.runs:
+        label, rest = spec.split("=", 1)
+        path, *sets = rest.split(",")
+        cfg = load_config(args.config, [f"data.height={h}", f"data.width={w}", *sets])
+        model = build_model(cfg).eval()
+        model.load_state_dict({k: v.float() for k, v in load_file(path).items()})
+        with torch.no_grad():
+            preds.append((label, model.decompose(px)))
+    tile = lambda t: ((t.clamp(-1, 1) + 1) * 127.5 + 0.5).byte().permute(1, 2, 0).numpy()  # noqa: E731
+    titles, rows = ["image"], []
+    for c, layer in ((0, "normal"), (3, "albedo"), (6, "reflection")):
+        titles += [f"{layer}: truth"] + [f"{layer}: {label}" for label, _ in preds]
+    for i in range(len(px)):
+        cells = [tile(px[i])]
+        for c in (0, 3, 6):
+            cells += [tile(py[i, c:c + 3])] + [tile(p[i, c:c + 3]) for _, p in preds]
+        rows.append(np.concatenate(cells, axis=1))
+    body = np.concatenate(rows, axis=0).repeat(args.scale, 0).repeat(args.scale, 1)
+    tw = w * args.scale
+    sheet = Image.new("RGB", (body.shape[1], body.shape[0] + 14), (255, 255, 255))
+    sheet.paste(Image.fromarray(body), (0, 14))
+    draw = ImageDraw.Draw(sheet)
+    for k, t in enumerate(titles):
+        draw.text((k * tw + 2, 1), t, fill=(0, 0, 0))
+    sheet.save(args.out)
+    print(args.out)
+
+
 def grid(args) -> None:
     variants = tomllib.loads(Path(args.variants).read_text())
     names = args.only or list(variants)
@@ -266,8 +309,15 @@ def main() -> None:
     g.add_argument("--minutes", type=float, default=None)
     g.add_argument("--out", required=True)
     g.add_argument("--save-dir", default=None, help="save every run's final weights (float16) here")
+    pc = sub.add_parser("picture")
+    pc.add_argument("--data", required=True)
+    pc.add_argument("--config", default="cpu-small")
+    pc.add_argument("--samples", type=int, default=4)
+    pc.add_argument("--scale", type=int, default=3)
+    pc.add_argument("--out", required=True)
+    pc.add_argument("runs", nargs="+", help="LABEL=WEIGHTS.safetensors[,key=value,...] (the variant's --set values)")
     a = ap.parse_args()
-    {"pack": pack, "run": run, "grid": grid}[a.cmd](a)
+    {"pack": pack, "run": run, "grid": grid, "picture": picture}[a.cmd](a)
 
 
 if __name__ == "__main__":
