@@ -41,6 +41,8 @@ demo: $(STAMP)
 	$(VENV)/bin/iae-eval report $(DEMO)/run --data $(DEMO)/pbr_eval --real $(DEMO)/pbr_real \
 		--intrinsics $(DEMO)/intrinsics_unseen --out $(DEMO)/report --quiet
 	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"
+	@echo "The demo's $(DEMO_STEPS)-step run checks the pipeline; it is not a trained model. What trained runs produce,"
+	@echo "with the commands that made them: README.md 'Results at a glance' and docs/experiment_log.md."
 
 # The paper's comparison end to end (eval/reproduce.py): BUDGET=smoke|cpu|gpu|paper, or the sanity
 # settings S0/S1 (eval/sanity.py): BUDGET=sanity|sanity-smoke; more options

@@ -1,4 +1,6 @@
-"""Generation benchmark: sustained samples/s at 512x256 and peak memory per worker.
+"""Generation benchmark: sustained samples/s at 512x256 and peak memory per worker, beside the bare
+Cycles render rate of the same scenes with the same number of processes (render only: no passes
+read back, no EXR, no hashing), and their ratio as the last line (`end-to-end / bare: 0.NN`).
 
 Prints measured figures; nothing is asserted. Usage: python bench/bench_generate.py
 [--count 200] [--workers 1 2]
@@ -32,6 +34,39 @@ def run(kind: str, out: Path, count: int, workers: int, extra: list[str]) -> dic
     return {"wall_s": wall, "line": proc.stdout.strip(), "peak_rss_mib_max_process": peak_kib / 1024}
 
 
+BARE = """
+import sys, time
+import bpy
+from blender_gen.recipe import Recipe
+from blender_gen.render import SampleRenderer
+w, h, start, count, threads = (int(v) for v in sys.argv[1:6])
+r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, background="environment"), threads=threads)
+def setup(i):
+    d = r.draw(i)
+    r.show(d["car"]); r.set_environment(r.env_image(d["env"])); r.place(d)
+    r.scene.frame_current = i + 1
+for i in range(start, start + 4):  # warm: the cars and skies of the timed samples' blocks are built
+    setup(i); bpy.ops.render.render(write_still=False)
+spent = 0.0
+for i in range(start + 4, start + 4 + count):
+    setup(i)
+    t0 = time.perf_counter(); bpy.ops.render.render(write_still=False); spent += time.perf_counter() - t0
+print(count / spent)
+"""
+
+
+def bare_rate(resolution: str, count: int, workers: int) -> float:
+    """Cycles' own render rate: `workers` processes render disjoint samples side by side, each timing
+    only bpy.ops.render.render; their rates add up."""
+    w, h = resolution.split("x")
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    per = max(1, count // workers)
+    procs = [subprocess.Popen([sys.executable, "-c", BARE, w, h, str(k * (per + 4)), str(per), str(threads)],
+                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+             for k in range(workers)]
+    return sum(float(p.communicate()[0].strip().splitlines()[-1]) for p in procs)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--count", type=int, default=200, help="samples in the sustained window")
@@ -50,8 +85,10 @@ def main() -> None:
             sustained = args.count / (long["wall_s"] - short["wall_s"])
             end_to_end = (args.warm + args.count) / long["wall_s"]
             startup = short["wall_s"] - args.warm / sustained
+            bare = bare_rate(args.resolution, args.count, w)
             results.append({"workers": w, "sustained_samples_per_s": sustained, "end_to_end_samples_per_s": end_to_end,
-                            "startup_s": startup, "peak_rss_mib_one_process": long["peak_rss_mib_max_process"]})
+                            "startup_s": startup, "peak_rss_mib_one_process": long["peak_rss_mib_max_process"],
+                            "bare_render_samples_per_s": bare})
             print(f"intrinsics {args.resolution} workers={w}: sustained {sustained:.2f} samples/s over {args.count} "
                   f"samples; end to end {end_to_end:.2f} samples/s for {args.warm + args.count} (start-up about "
                   f"{startup:.1f} s); peak RSS of one process {long['peak_rss_mib_max_process']:.0f} MiB", flush=True)
@@ -60,6 +97,11 @@ def main() -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     print(json.dumps({"machine": {"cpus": os.cpu_count()}, "results": results}, indent=2))
+    for r in results:
+        print(f"workers={r['workers']}: sustained {r['sustained_samples_per_s']:.2f}, bare Cycles "
+              f"{r['bare_render_samples_per_s']:.2f} samples/s")
+    last = results[-1]
+    print(f"end-to-end / bare: {last['sustained_samples_per_s'] / last['bare_render_samples_per_s']:.2f}")
 
 
 if __name__ == "__main__":
