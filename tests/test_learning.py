@@ -18,7 +18,8 @@ from train.data import CachedTensors, IntrinsicsData, RealImages, flip_stack
 from train.losses import chroma_loss
 from train.model import build_model
 from train.probe import ProbeSet, decomposition_scores, evaluate_probe, input_sensitivity, training_means
-from train.sanity import LIGHT, shade_network, srgb_decode, srgb_encode
+from train.colour import srgb_decode, srgb_encode
+from train.sanity import LIGHT, shade_network
 
 from .train_helpers import TINY, tiny_intrinsics, tiny_overrides
 

@@ -1,6 +1,8 @@
 """Blender-free parts: material table, catalogue geometry, cameras, env lookup, format."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -175,3 +177,32 @@ def test_dimensions_per_category_are_real_world_metres():
             lo, hi = r[what]
             assert lo - 0.03 <= value <= hi + 0.03, (spec.name, what, value, (lo, hi))
         assert 1.6 <= np.ptp(pts[:, 1]) <= 2.45, spec.name  # width including mirrors (a 2 m van: 2.3 m)
+
+def test_no_import_circles_between_project_modules():
+    """Module A imports B (anywhere in its file, function-level imports included) and B imports A:
+    what both use belongs below both. The CLIs are the tops and are left out as importers' targets."""
+    import ast
+
+    root = Path(__file__).resolve().parent.parent
+    graph: dict[str, set[str]] = {}
+    for pkg in ("blender_gen", "train", "eval"):
+        for path in (root / pkg).rglob("*.py"):
+            mod = ".".join(path.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
+            deps = graph.setdefault(mod, set())
+            base = mod.split(".") if path.name == "__init__.py" else mod.split(".")[:-1]
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom):
+                    if node.level:
+                        target = ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else []))
+                    else:
+                        target = node.module or ""
+                    names = [target] + [f"{target}.{a.name}" for a in node.names]
+                    deps.update(n for n in names if n.split(".")[0] in ("blender_gen", "train", "eval"))
+                elif isinstance(node, ast.Import):
+                    deps.update(a.name for a in node.names if a.name.split(".")[0] in ("blender_gen", "train", "eval"))
+    graph = {m: {d for d in deps if d in graph and d != m} for m, deps in graph.items()}
+    circles = sorted({tuple(sorted((a, b))) for a, deps in graph.items() for b in deps
+                      if a in graph.get(b, set()) and not a.endswith("__init__") and "." in a and "." in b
+                      and a not in ("blender_gen.cars", "train", "eval", "blender_gen")
+                      and b not in ("blender_gen.cars", "train", "eval", "blender_gen")})
+    assert not circles, circles

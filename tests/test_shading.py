@@ -88,7 +88,7 @@ def test_the_shader_renderer_shades_by_its_normals_and_replaces_ablated_maps():
     out = r(stacks)
     assert out.shape == (2, 3, 32, 64) and out.min() >= -1 and out.max() <= 1
     # without a residual it is exactly the SH formula, so another normal map gives another image
-    from train.sanity import srgb_encode
+    from train.colour import srgb_encode
 
     ref = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], r.light, r.gain)) * 2 - 1
     assert torch.allclose(out, ref, atol=1e-6)
@@ -216,7 +216,7 @@ def test_moving_average_is_probed_saved_and_resumed_exactly(tmp_path):
 
 
 def test_lighting_fitted_to_an_image_renders_it_and_fills_the_bank():
-    from train.sanity import srgb_encode
+    from train.colour import srgb_encode
     from train.shading import fit_lighting
 
     stacks, masks = _blobs(3)
@@ -300,7 +300,7 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
     """With a gain fitted per image, maps that put the whole image into the reflection layer (no
     albedo) explain it exactly; with the gain shared at the data's value they cannot, while the
     true maps still fit. The shared gain is learned (log space) and reaches the renderer's output."""
-    from train.sanity import srgb_encode
+    from train.colour import srgb_encode
     from train.shading import fit_lighting
 
     stacks, masks = _blobs(3)

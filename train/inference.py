@@ -83,7 +83,7 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
     from .video import check_video_path, display, side_by_side as join, write_video
 
     if video is not None:
-        from .export import refuse_output
+        from blender_gen.outputs import refuse_output
 
         check_video_path(video)
         refuse_output(video, "--video", force_video)  # checked before any frame is rendered

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .sanity import srgb_encode
+from .colour import srgb_encode
 from .shading import _C0, _C1, linear, render_sh
 
 # Adam moves a parameter by about lr per step; the shared gain's log moves this many times faster

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from .losses import object_mask
-from .sanity import srgb_decode, srgb_encode
+from .colour import srgb_decode, srgb_encode
 
 PROBE_PREFIX = "probe/"
 EMA_PREFIX = "probe_ema/"  # the same figures of the moving-average weights

@@ -14,19 +14,9 @@ from pathlib import Path
 
 import torch
 
+from .colour import srgb_decode, srgb_encode  # noqa: F401  (the sanity shader's colour transfer)
+
 LIGHT = torch.tensor([0.3, 0.6, 0.7]) / torch.tensor([0.3, 0.6, 0.7]).norm()
-
-
-def srgb_decode(x: torch.Tensor) -> torch.Tensor:
-    """sRGB-encoded [0, 1] -> linear (IEC 61966-2-1)."""
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def srgb_encode(x: torch.Tensor) -> torch.Tensor:
-    """Linear -> sRGB-encoded, clipped to [0, 1]."""
-    x = x.clamp(0, 1)
-    return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
 def shade_network(maps: torch.Tensor) -> torch.Tensor:

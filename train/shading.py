@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .sanity import srgb_decode
+from .colour import srgb_decode
 
 # Rec. 709 luminance of linear RGB
 LUMA = (0.2126, 0.7152, 0.0722)

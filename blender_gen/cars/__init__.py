@@ -4,8 +4,9 @@ measuring shape diversity (`silhouette`), and real models with their part rules
 (`rules`, `importer`; the importer imports bpy, the rest does not).
 """
 from .body import build_car
-from .catalogue import (CATALOGUE_FILE, RandomCars, catalogue_digest, load_catalogue, load_part_materials,
-                        select_cars)
+from .catalogue import CATALOGUE_FILE, load_catalogue, load_part_materials
+from .selectors import RandomCars, select_cars
+from .identity import catalogue_digest
 from .spec import CATEGORIES, PARTS, STYLES, CarSpec, spec_problems
 
 __all__ = ["CATALOGUE_FILE", "CATEGORIES", "PARTS", "STYLES", "CarSpec", "RandomCars", "build_car",
