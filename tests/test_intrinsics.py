@@ -113,11 +113,12 @@ def test_a_set_made_before_the_extra_layers_is_extended_without_them(tmp_path):
     """Its samples keep the layers it lists, so a resumed or extended set never mixes two formats;
     a new set lists and holds depth, part and gloss with the part names."""
     from blender_gen.dataset import open_dataset
-    from blender_gen.generate import generate
-    from blender_gen.recipe import Recipe
 
-    old = Recipe(kind="intrinsics", seed=3, width=64, height=32, extra_layers=())
-    generate(old, tmp_path / "old", 1, progress=False)
+    # in a process of its own: a renderer made here would reset the module's Blender scene
+    subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; from blender_gen.generate import "
+                    "generate; from blender_gen.recipe import Recipe; generate(Recipe(kind='intrinsics', seed=3, "
+                    "width=64, height=32, extra_layers=()), Path(sys.argv[1]), 1, progress=False)",
+                    str(tmp_path / "old")], check=True, cwd=ROOT, capture_output=True)
     run_gen("intrinsics", "--out", str(tmp_path / "old"), "--count", "2", "--resolution", "64x32", "--seed", "3",
             "--background", "black", "--quiet")
     ds = open_dataset(tmp_path / "old")
@@ -261,12 +262,12 @@ def test_inspect_summarises_and_writes_a_preview_grid(tiny_intrinsics):
     proc = run_gen("inspect", str(tiny_intrinsics), "--json", "--quiet")
     s = json.loads(proc.stdout)
     assert s["complete"] and s["samples"] == 4 and not s["problems"]
-    assert set(s["layers"]) == {"normal", "albedo", "reflection", "mask", "material"}
+    assert set(s["layers"]) == {"normal", "albedo", "reflection", "mask", "material", "depth", "part", "gloss"}
     assert s["layers"]["normal"]["min"] >= -1.001 and s["layers"]["mask"]["max"] == 1.0
     from PIL import Image
 
-    grid = Image.open(s["grid"])
-    assert grid.size == (3 * 64, 4 * 32)
+    grid = Image.open(s["grid"])  # normal, albedo, reflection, depth, part, gloss under a title band
+    assert grid.size == (6 * 64, 14 + 4 * 32)
 
 
 @pytest.mark.parametrize("args, message", [
