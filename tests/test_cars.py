@@ -10,7 +10,7 @@ import pytest
 
 from blender_gen.cars import CATEGORIES, STYLES, CarSpec, RandomCars, build_car, load_catalogue, select_cars
 from blender_gen.cars import sampler
-from blender_gen.cars.sampler import draw_spec, load_ranges, random_spec, ranges_for
+from blender_gen.cars.sampler import draw_spec, random_spec, ranges_for
 from blender_gen.cars.silhouette import VIEWS, diversity, iou, iou_matrix, pair_iou, silhouettes
 from blender_gen.cars.spec import ARCHES, GRILLES, HEADLIGHTS, TAIL_LIGHTS, spec_problems
 from blender_gen.geometry import Mesh
@@ -34,7 +34,6 @@ def _style_samples(per_style: int = 3) -> dict[str, list[CarSpec]]:
 
 
 def test_every_body_style_has_every_part_grounded_and_in_its_real_world_range():
-    ranges = load_ranges()
     samples = _style_samples()
     assert set(samples) == {s for styles in STYLES.values() for s in styles}
     for style, specs in samples.items():
