@@ -41,15 +41,11 @@ from blender_gen.recipe import Recipe
 from blender_gen.render import SampleRenderer
 w, h, start, count, threads = (int(v) for v in sys.argv[1:6])
 r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, background="environment"), threads=threads)
-def setup(i):
-    d = r.draw(i)
-    r.show(d["car"]); r.set_environment(r.env_image(d["env"])); r.place(d)
-    r.scene.frame_current = i + 1
 for i in range(start, start + 4):  # warm: the cars and skies of the timed samples' blocks are built
-    setup(i); bpy.ops.render.render(write_still=False)
+    r.set_up(i); bpy.ops.render.render(write_still=False)
 spent = 0.0
 for i in range(start + 4, start + 4 + count):
-    setup(i)
+    r.set_up(i)
     t0 = time.perf_counter(); bpy.ops.render.render(write_still=False); spent += time.perf_counter() - t0
 print(count / spent)
 """

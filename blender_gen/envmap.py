@@ -29,12 +29,6 @@ def uv_to_direction(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)], axis=-1)
 
 
-def rotate_z(d: np.ndarray, degrees: float) -> np.ndarray:
-    a = np.deg2rad(degrees)
-    c, s = np.cos(a), np.sin(a)
-    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
-
-
 def sample_equirect(env: np.ndarray, d: np.ndarray, rotation_deg: float = 0.0) -> np.ndarray:
     """Bilinear lookup of `env` along world directions `d` (..., 3).
 
@@ -43,11 +37,8 @@ def sample_equirect(env: np.ndarray, d: np.ndarray, rotation_deg: float = 0.0) -
     """
     h, w, _ = env.shape
     d = np.asarray(d)
-    d = d if d.dtype == np.float32 else d.astype(np.float64)
-    length = np.sqrt(np.einsum("...i,...i->...", d, d))
-    # Blender's mapping (direction_to_uv) with the turn folded into the azimuth
-    u = 0.5 - (np.arctan2(d[..., 1], d[..., 0]) - np.deg2rad(rotation_deg)) / (2.0 * np.pi)
-    v = 0.5 + np.arcsin(np.clip(d[..., 2] / np.maximum(length, 1e-12), -1.0, 1.0)) / np.pi
+    u, v = direction_to_uv(d if d.dtype == np.float32 else d.astype(np.float64))
+    u = u + rotation_deg / 360.0  # the map turned by +rotation about +Z: azimuth a reads a - rotation
     x = (u * w - 0.5).ravel()
     y = ((1.0 - v) * h - 0.5).ravel()  # rows run top-down here
     xf, yf = np.floor(x), np.floor(y)

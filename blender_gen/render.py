@@ -259,7 +259,8 @@ class SampleRenderer:
     # (recipe, index) alone. A turntable keeps one seed for every frame (frame 1 throughout).
     MAX_FRAME = 1_000_000  # below Blender's frame limit; noise patterns repeat after a million samples
 
-    def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
+    def set_up(self, index: int) -> dict:
+        """Put sample `index`'s car, paint, environment, camera and noise seed in the scene; returns its draws."""
         d = self.draw(index)
         self.show(d["car"])
         self.set_environment(self.env_image(d["env"]))
@@ -271,6 +272,10 @@ class SampleRenderer:
         frame = 1 if orbit else index % self.MAX_FRAME + 1
         if self.scene.frame_current != frame:
             self.scene.frame_current = frame
+        return d
+
+    def render_layers(self, index: int) -> tuple[dict[str, np.ndarray], dict]:
+        d = self.set_up(index)
         layers = self.render_current()
         if self.recipe.kind == "intrinsics" and self.recipe.background == "environment" and self.world_env is None:
             w, h = self.recipe.width, self.recipe.height

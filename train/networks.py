@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import srgb_encode
+from .losses import object_mask
 from .shading import _C0, _C1, linear, render_sh
 
 # Adam moves a parameter by about lr per step; the shared gain's log moves this many times faster
@@ -267,13 +268,12 @@ class ShaderRenderer(nn.Module):
             gain = self.shared_gain()
         lin = render_sh(n, a, f, light, gain)
         if self.background == "environment":  # no object: the scene behind the car, at unit gain
-            obj = m[:, 0:3].float().norm(dim=1, keepdim=True) > 0.5
-            lin = torch.where(obj, lin, linear(f.float()))
+            lin = torch.where(object_mask(m) > 0, lin, linear(f.float()))
         base = srgb_encode(lin) * 2 - 1
         if self.net is None:
             return base
         sel = torch.cat([m[:, CHANNELS[c]] for c in self.inputs] + [base.to(m.dtype)], dim=1)
         res = self.residual * self.net(sel)
         if self.residual_on == "background":  # on the car the image is the shading alone: no room for a code
-            res = res * (m[:, 0:3].float().norm(dim=1, keepdim=True) <= 0.5).to(res.dtype)
+            res = res * (1 - object_mask(m)).to(res.dtype)
         return (base + res).clamp(-1, 1)
