@@ -10,7 +10,7 @@ Two measurements for trained runs of the Intrinsic Autoencoder (or any kind with
            with the supervised direction per network (several batches and checkpoints per run).
 
   python bench/domain_gap.py gap --probe OUT/data/eval OUT/runs/full OUT/runs/no_dec
-  python bench/domain_gap.py cosines eval/results/cpu_new/diagnose/diag_full_*.json
+  python bench/domain_gap.py cosines results/cpu_new/diagnose/diag_full_*.json
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Probe curves of the `cpu` comparison run as objective sweeps (bench/variants_cpu.toml) on a GPU.
 
-  python bench/plot_comparison.py eval/results/cpu_gpu --out eval/results/cpu_gpu_curves.png
-  python bench/plot_comparison.py eval/results/cpu_new/s22 [more folders] --out curves.png
+  python bench/plot_comparison.py results/cpu_gpu --out results/cpu_gpu_curves.png
+  python bench/plot_comparison.py results/cpu_new/s22 [more folders] --out curves.png
 Reads the sweeps' curve files (rows name their variant and seed) and `reproduce` runs' probe rows
 saved as NAME_sSEED_probe.jsonl (the name says which).
 Prints a Markdown table (the last probe row of every run, mean over seeds with the spread) and

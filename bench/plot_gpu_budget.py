@@ -1,9 +1,9 @@
 """Probe curves at the paper's resolution (the `gpu` budget's networks) beside the `cpu` budget's.
 
-  python bench/plot_gpu_budget.py --gpu eval/results/gpu_budget \
-      --cpu eval/results/cpu_chroma/chroma_s21_probe.jsonl eval/results/cpu_chroma/chroma_s22_probe.jsonl \
-      --cpu-oracle eval/results/cpu_new/s21/oracle_s21_probe.jsonl eval/results/cpu_new/s22/oracle_s22_probe.jsonl \
-      --out eval/results/gpu_budget/curves.png
+  python bench/plot_gpu_budget.py --gpu results/gpu_budget \
+      --cpu results/cpu_chroma/chroma_s21_probe.jsonl results/cpu_chroma/chroma_s22_probe.jsonl \
+      --cpu-oracle results/cpu_new/s21/oracle_s21_probe.jsonl results/cpu_new/s22/oracle_s22_probe.jsonl \
+      --out results/gpu_budget/curves.png
 GPU curves: bench/objective_sweep.py files (NAME_sSEED.jsonl, moving-average figures where present);
 CPU curves: `fit --probe` rows of the committed `cpu` comparison (raw weights: those runs predate the
 moving average). Steps are optimiser steps: batch 1 at 256x512 on the GPU, batch 4 at 64x128 on the CPU.

@@ -1,6 +1,6 @@
 """Probe curves of objective sweeps (bench/objective_sweep.py output) as one figure and a table.
 
-  python bench/plot_sweeps.py eval/results/sweeps --out eval/results/making_it_learn.png
+  python bench/plot_sweeps.py results/sweeps --out results/making_it_learn.png
 Each sub-folder is a setting (s0, s1, protocol, protocol_env); each NAME_sSEED.jsonl a run.
 """
 from __future__ import annotations

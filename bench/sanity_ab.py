@@ -1,6 +1,6 @@
 """Side by side: the probe figures of several sanity-setting runs (an A/B of objectives).
 
-    python bench/sanity_ab.py --out eval/results/shading LABEL=RUN_DIR [LABEL=RUN_DIR ...]
+    python bench/sanity_ab.py --out results/shading LABEL=RUN_DIR [LABEL=RUN_DIR ...]
 
 Each run folder comes from `iae-eval reproduce --budget sanity [--set ...]` (OUT/runs/S0/full_seedN) or
 `iae-train fit --probe`. Writes, into --out: `table.md` (the last probe row of every run: moving-average

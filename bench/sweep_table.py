@@ -1,6 +1,6 @@
 """Table and curves of objective sweeps (bench/objective_sweep.py output), moving-average figures first.
 
-  python bench/sweep_table.py eval/results/shading_ren --out eval/results/shading_ren/curves.png
+  python bench/sweep_table.py results/shading_ren --out results/shading_ren/curves.png
 Each sub-folder of ROOT is a setting (s0, s1, protocol, ...), or ROOT itself holds the curves;
 each NAME_sSEED.jsonl a run.
 Per run, the last probe row: normals of the moving-average weights (probe_ema/, what inference

@@ -5,6 +5,10 @@ Normals: angle between the normalised prediction and the truth (mean, median, % 
 scale) and on linear values; albedo also scale-invariantly (albedo is defined up to scale).
 Speckle (not in the paper): the high-frequency energy (mean |Laplacian| inside the object) of
 the predicted normals and albedo beside the truth's, so a hidden code in H's maps is a number.
+Diffuse shading (not in the paper): where the predictions hold a `diffuse_shading` layer and the
+ground truth holds Cycles' (PBR sets with light layers), the scale-invariant L1 on linear values
+(shading is defined up to the light's scale) relative to the truth's mean, beside the same figure
+for a flat shading, the bar any prediction must beat.
 """
 from __future__ import annotations
 
@@ -54,6 +58,19 @@ def high_frequency(x: np.ndarray, on: np.ndarray) -> float:
     return float(lap[inner].mean()) if inner.any() else 0.0
 
 
+SHADING = "diffuse_shading"
+
+
+def shading_errors(pred: np.ndarray | None, gt: np.ndarray) -> dict[str, float]:
+    """Scale-invariant L1 of (N, 3) linear diffuse shadings over the truth's mean: the
+    prediction's when given, and always a flat (constant) shading's, the bar it must beat."""
+    mean = max(float(np.mean(np.abs(gt))), 1e-12)
+    row = {"shading_flat_si_rel_l1": scale_invariant_l1(np.ones_like(gt), gt) / mean}
+    if pred is not None:
+        row["shading_si_rel_l1"] = scale_invariant_l1(pred, gt) / mean
+    return row
+
+
 def _unit(n: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
 
@@ -79,6 +96,8 @@ def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tupl
         "albedo_hf": high_frequency(linear_to_srgb(pred["albedo"]), on),
         "albedo_hf_truth": high_frequency(linear_to_srgb(gt["albedo"]), on),
     }
+    if SHADING in pred and SHADING in gt:
+        row.update(shading_errors(pred[SHADING][on], gt[SHADING][on]))
     return row, ang
 
 
@@ -98,6 +117,8 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
                            f"{data}'s (another seed or options); decompose --data itself")
     gt_rows = gt_ds.rows[:limit] if limit is not None else gt_ds.rows
     preds = {r["index"]: k for k, r in enumerate(pred_ds.rows)}
+    # diffuse shading is scored where both sides hold it (sets made before the light layers do not)
+    shading = SHADING in pred_ds.layers and SHADING in gt_ds.layers
     rows, all_angles = [], []
     missing = [r["index"] for r in gt_rows if r["index"] not in preds]
     if len(missing) == len(gt_rows):
@@ -109,8 +130,8 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
         if pred_row.get("source_sha256", row["sha256"]) != row["sha256"]:
             raise DatasetError(f"{predictions}: sample {row['index']} was predicted from another image than "
                                f"{data}/{row['file']} (checksums differ)")
-        gt = gt_ds.load(i, ["normal", "albedo", "reflection", "mask"])
-        pred = pred_ds.load(preds[row["index"]], ["normal", "albedo", "reflection"])
+        gt = gt_ds.load(i, ["normal", "albedo", "reflection", "mask"] + [SHADING] * shading)
+        pred = pred_ds.load(preds[row["index"]], ["normal", "albedo", "reflection"] + [SHADING] * shading)
         if pred["normal"].shape != gt["normal"].shape:
             raise DatasetError(f"{predictions}: sample {row['index']} is {pred['normal'].shape[1]}x"
                                f"{pred['normal'].shape[0]}, ground truth {gt['normal'].shape[1]}x{gt['normal'].shape[0]}")
@@ -133,6 +154,8 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
         "data": str(Path(data).resolve()),
         "predictions": str(Path(predictions).resolve()),
     }
+    if SHADING in pred_ds.layers and not shading:
+        summary["shading_note"] = f"{data} holds no {SHADING} layer (made before the light layers): shading not scored"
     return rows, summary
 
 
@@ -161,7 +184,10 @@ def format_table(summary: dict) -> str:
         f"scale-invariant {summary['albedo_si_l1_linear']:.4f}",
         f"  reflection  L1 {summary['reflection_l1_srgb255']:.2f} (0-255 sRGB), {summary['reflection_l1_linear']:.4f} (linear)",
     ] + ([f"  speckle     high-frequency energy x the truth's: normals {summary['normal_hf_ratio']:.2f}, "
-          f"albedo {summary['albedo_hf_ratio']:.2f}"] if "normal_hf_ratio" in summary else []))
+          f"albedo {summary['albedo_hf_ratio']:.2f}"] if "normal_hf_ratio" in summary else [])
+        + ([f"  shading     scale-invariant L1 / the truth's mean {summary['shading_si_rel_l1']:.4f} "
+            f"(a flat shading: {summary['shading_flat_si_rel_l1']:.4f})"] if "shading_si_rel_l1" in summary else [])
+        + ([f"  shading     {summary['shading_note']}"] if "shading_note" in summary else []))
 
 
 def summary_json(path: Path) -> dict:

@@ -126,6 +126,48 @@ def test_scoring_a_predictions_folder_writes_csv_and_json(tmp_path):
     assert bad.returncode and "no such dataset directory" in bad.stderr
 
 
+def _with_shading(root: Path, scale=lambda s, i: s) -> Path:
+    """Give every sample of a tiny set a `diffuse_shading` layer (a smooth ramp, unique per sample)
+    made by `scale(shading, index)`, rewrite its checksums and list the layer in dataset.json."""
+    from blender_gen.dataset import read_exr, sha256_file, write_exr
+
+    info = json.loads((root / "dataset.json").read_text())
+    rows = [json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines()]
+    for row in rows:
+        path = root / row["file"]
+        layers = read_exr(path)
+        h, w = layers["mask"].shape[:2]
+        ramp = np.linspace(0.2, 1.5, w)[None, :, None] * np.linspace(1.0, 0.5, h)[:, None, None]
+        layers["diffuse_shading"] = scale(ramp * np.array([1.0, 0.9, 0.8]) * (1 + row["index"]), row["index"])
+        write_exr(path, layers)
+        row["sha256"] = sha256_file(path)
+    (root / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    info["layers"] = [*info.get("layers", ["rgb", "normal", "albedo", "reflection", "mask", "material"]), "diffuse_shading"]
+    (root / "dataset.json").write_text(json.dumps(info))
+    return root
+
+
+def test_diffuse_shading_is_scored_up_to_scale_beside_a_flat_bar(tmp_path):
+    pbr = _with_shading(tiny_intrinsics(tmp_path / "pbr", n=3, kind="pbr"))
+    # a prediction off by a per-image scale scores as the truth; a flat one as the bar
+    scaled = _with_shading(tiny_intrinsics(tmp_path / "scaled", n=3, kind="pbr"), lambda s, i: s * (0.3 + i))
+    rows, summary = score_predictions(pbr, scaled, progress=False)
+    assert summary["shading_si_rel_l1"] < 2e-3  # half floats
+    assert summary["shading_flat_si_rel_l1"] > 0.1
+    flat = _with_shading(tiny_intrinsics(tmp_path / "flat", n=3, kind="pbr"), lambda s, i: np.ones_like(s))
+    rows, summary = score_predictions(pbr, flat, progress=False)
+    assert summary["shading_si_rel_l1"] == pytest.approx(summary["shading_flat_si_rel_l1"], rel=1e-3)
+    proc = _cli("decomposition", "--predictions", str(flat), "--data", str(pbr), "--out", str(tmp_path / "s.json"),
+                "--quiet")
+    assert "shading     scale-invariant L1" in proc.stdout
+    # ground truth made before the light layers: said, not scored; predictions without it: no shading rows
+    old = tiny_intrinsics(tmp_path / "old", n=3, kind="pbr")
+    rows, summary = score_predictions(old, scaled, progress=False)
+    assert "shading_si_rel_l1" not in summary and "no diffuse_shading layer" in summary["shading_note"]
+    rows, summary = score_predictions(pbr, old, progress=False)
+    assert not any(k.startswith("shading") for k in summary)
+
+
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
