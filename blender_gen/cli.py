@@ -383,9 +383,10 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
             if path is not None and path.exists() and not force:
                 _fail(f"{path}: exists; pass --force to overwrite")
         targets.append((token, name, rules_path, png))
+    import importlib
     import signal
 
-    import bpy  # noqa: F401  (importing it takes over SIGINT below Python: Ctrl-C was ignored)
+    importlib.import_module("bpy")  # importing bpy takes over SIGINT below Python (Ctrl-C was ignored)
 
     signal.signal(signal.SIGINT, signal.default_int_handler)  # so that one Ctrl-C stops the command
     try:

@@ -201,11 +201,23 @@ class Plan:
 
     def check_configs(self) -> None:
         """Resolve every run's config now (ConfigError names the setting), so a size the networks
-        cannot take fails before any data is generated."""
-        from train.config import load_config
+        cannot take fails before any data is generated; and refuse now, before the plan measures
+        or promises anything, a started run folder that holds another config (its training would
+        refuse to resume)."""
+        from train.checkpoint import newest_state
+        from train.config import ConfigError, config_from_dict, load_config
+        from train.run_folder import RunFolder
 
         for name in self.runs:
-            load_config(*self._config_args(name))
+            cfg = load_config(*self._config_args(name)).to_dict()
+            run = RunFolder(self.out / "runs" / name)
+            if not run.exists() or newest_state(run.checkpoints) is None:
+                continue
+            saved = config_from_dict(run.options()["config"]).to_dict()
+            diff = [k for k in cfg if cfg[k] != saved.get(k)]
+            if diff:
+                raise ConfigError(f"{run.root}: run {name!r} was trained with another config (section(s) {diff} "
+                                  "differ); rerun with the options it started with, or choose another --out")
 
     def lanes(self) -> int:
         # Trainings beyond the runs, or beyond the cores on a CPU, cannot run side by side.

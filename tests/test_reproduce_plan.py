@@ -198,3 +198,26 @@ def test_an_objective_override_reaches_the_autoencoders_runs_only():
             has = all(s in cmd for s in sets)
             assert has == (name not in ("oracle", "cyclegan", "munit")), (budget, name)
         plan.check_configs()  # every run's config resolves (the gpu budget's oracle from the paper preset too)
+
+
+def test_a_started_run_with_another_config_is_refused_before_the_plan_promises_anything(tmp_path, monkeypatch):
+    """A rerun with other --set options over finished runs once said "nothing left to train" and
+    then had its trainings refused; the plan now refuses first, naming the run folder."""
+    import json
+
+    from train.config import ConfigError, load_config
+
+    plan = Plan(BUDGETS["smoke"], tmp_path, 0, 1, 1, 0, ["full"], overrides=("loss.w_dec=3",))
+    run = tmp_path / "runs" / "full"
+    (run / "checkpoints").mkdir(parents=True)
+    config, sets = plan._config_args("full")
+    same = load_config(config, sets).to_dict()
+    (run / "training_options.json").write_text(json.dumps({"config": same, "intrinsics": "i", "real": "r"}))
+    monkeypatch.setattr("train.checkpoint.newest_state", lambda folder: (folder / "step_000010.safetensors", 10))
+    plan.check_configs()  # the same options: resumes
+    other = load_config(config, [s for s in sets if s != "loss.w_dec=3"]).to_dict()
+    (run / "training_options.json").write_text(json.dumps({"config": other, "intrinsics": "i", "real": "r"}))
+    with pytest.raises(ConfigError, match=r"runs/full: run 'full' was trained with another config.*'loss'"):
+        plan.check_configs()
+    monkeypatch.setattr("train.checkpoint.newest_state", lambda folder: None)
+    plan.check_configs()  # not started: fit starts it afresh with the new options
