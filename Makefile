@@ -56,7 +56,7 @@ reproduce: $(STAMP)
 # a trained run or Blender's one scene per process stay shared); TEST_JOBS=0 runs in-process.
 TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --durations=15
 
 bench: $(STAMP)
 	$(PY) bench/bench_generate.py

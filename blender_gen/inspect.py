@@ -65,6 +65,9 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
             s["n"] += arr.size
         if "mask" in data:  # the extra layers agree with the mask and their own ranges
             on, off = data["mask"][..., 0] > 0.5, data["mask"][..., 0] <= 0
+            if "normal" in data and on.any():
+                unit_err = max(unit_err, float(np.abs(np.linalg.norm(data["normal"][on], axis=-1) - 1).max()))
+                unit_n += int(on.sum())
             if "depth" in data and ((data["depth"][on] <= 0).any() or (data["depth"][off] != 0).any()):
                 problems.append(f"{row['file']}: depth is not positive on the car and 0 off it")
             if "part" in data and ((data["part"][on] < 1).any() or (n_parts and (data["part"] >= n_parts).any())):
@@ -80,11 +83,6 @@ def inspect_dataset(root: Path, max_stats: int | None = None, progress: bool = T
                 if rel > RECOMPOSITION_TOLERANCE:
                     problems.append(f"{row['file']}: the light layers add up to rgb_noisy on the car only within "
                                     f"{rel:.2%} (tolerance {RECOMPOSITION_TOLERANCE:.0%})")
-        if "normal" in data and "mask" in data:
-            on = data["mask"][..., 0] > 0.5
-            if on.any():
-                unit_err = max(unit_err, float(np.abs(np.linalg.norm(data["normal"][on], axis=-1) - 1).max()))
-                unit_n += int(on.sum())
     summary = {
         "root": str(ds.root),
         "kind": ds.kind,

@@ -332,3 +332,35 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
     assert plain.R.shared_gain() is None and "R.log_gain" not in plain.state_dict()  # older checkpoints still load
     with pytest.raises(ConfigError, match="model.shader_gain_start"):
         load_config("cpu-small", tiny_overrides() + ["model.shader_gain_start=nan"])
+
+
+def test_the_shading_budget_takes_a_cycles_image_apart():
+    """bench/shading_budget.py: a diffuse shading that is exactly second-order SH of the normals
+    fits to ~0; the layers' shares of the car's luminance add up to the image's."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from shading_budget import budget
+
+    from train.shading import sh_basis
+
+    rng = np.random.default_rng(0)
+    h, w = 24, 40
+    yy, xx = np.mgrid[0:h, 0:w]
+    u, v = (xx - w / 2) / (w / 2.2), (yy - h / 2) / (h / 2.2)
+    inside = u**2 + v**2 < 1
+    n = np.stack([u, -v, np.sqrt(np.clip(1 - u**2 - v**2, 1e-4, 1))], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    basis = sh_basis(torch.from_numpy(n.transpose(2, 0, 1).copy()).float()[None])[0].numpy().transpose(1, 2, 0)
+    shading = np.repeat((basis @ np.array([1.0, 0.3, 0.5, 0.2, 0.05, 0.1, 0.1, 0.0, 0.05]))[..., None], 3, -1)
+    albedo = np.full((h, w, 3), 0.5) * inside[..., None]
+    glossy = rng.uniform(0, 0.2, (h, w, 3)) * inside[..., None]
+    zero = np.zeros((h, w, 3))
+    sample = {"normal": n * inside[..., None], "albedo": albedo, "reflection": glossy * 2, "mask": inside[..., None] * 1.0,
+              "diffuse_shading": shading, "diffuse_color": albedo, "glossy": glossy, "transmission": zero,
+              "emission": zero, "environment": zero, "rgb_noisy": albedo * shading + glossy}
+    row = budget(sample)
+    assert row["residual_diffuse_shading"] < 1e-4 and row["residual_diffuse_image"] < 1e-4
+    assert row["residual_image"] < 1e-3  # gloss = 0.5 x the reflection layer: the model draws it exactly
+    shares = sum(row[k] for k in row if k.startswith("share_"))
+    assert shares == pytest.approx(1.0, abs=1e-6)
+    sample["diffuse_shading"] = shading * rng.uniform(0.5, 1.5, (h, w, 1))  # noise the SH cannot draw
+    assert budget(sample)["residual_diffuse_shading"] > 0.1
