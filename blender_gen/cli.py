@@ -234,13 +234,19 @@ def intrinsics(**o) -> None:
 
 @main.command()
 @_common_options
+@click.option("--noise-threshold", default=Recipe.noise_threshold, show_default=True, type=click.FloatRange(0, 1, max_open=True),
+              help="Cycles' adaptive sampling: a pixel stops once the image is this clean, so its light layers can "
+                   "stay noisier; 0 = every pixel takes all --samples (converged light layers).")
 def pbr(**o) -> None:
     """Render Cycles path-traced images with their ground-truth intrinsics.
 
     The defaults make the stand-in for real photos: held-out cars under held-out skies. The
     Table-3 evaluation set is `--cars procedural:train --envmap procedural` with a new --seed.
     """
-    _run(_build_recipe("pbr", "procedural:heldout", 8, o, default_env="procedural:heldout"), o)
+    if not math.isfinite(o["noise_threshold"]):
+        _fail(f"--noise-threshold {o['noise_threshold']}: expected a number in [0, 1)")
+    recipe = _build_recipe("pbr", "procedural:heldout", 8, o, default_env="procedural:heldout")
+    _run(replace(recipe, noise_threshold=o["noise_threshold"]), o)
 
 
 @main.command()

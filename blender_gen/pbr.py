@@ -38,8 +38,8 @@ class PbrRenderer(SampleRenderer):
     def _configure_cycles(self, threads: int) -> None:
         S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
         cy = self.scene.cycles
-        cy.use_adaptive_sampling = True
-        cy.adaptive_threshold = 0.03
+        cy.use_adaptive_sampling = self.recipe.noise_threshold > 0
+        cy.adaptive_threshold = self.recipe.noise_threshold or 0.03
         cy.adaptive_min_samples = min(4, self.recipe.samples)
         cy.use_denoising = True
         cy.denoiser = "OPENIMAGEDENOISE"

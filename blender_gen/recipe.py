@@ -47,6 +47,10 @@ class Recipe:
     # Layers beyond the kind's first ones (depth, part, gloss; PBR: the light passes too); None = all
     # of the kind's, () = a set made before them.
     extra_layers: tuple[str, ...] | None = None
+    # PBR only: Cycles' adaptive-sampling threshold. A pixel stops once the *image* is that clean,
+    # so its light layers (diffuse shading under a glossy roof) can stay noisy; 0 = every pixel
+    # takes all `samples` (converged light layers for a shading benchmark, slower).
+    noise_threshold: float = 0.03
 
     def extras(self) -> tuple[str, ...]:
         return KIND_EXTRA_LAYERS[self.kind] if self.extra_layers is None else tuple(self.extra_layers)
@@ -81,6 +85,8 @@ class Recipe:
             d["extra_layers"] = list(self.extras())
         else:
             del d["extra_layers"]  # and sets made before the extra layers
+        if self.kind != "pbr" or self.noise_threshold == Recipe.noise_threshold:
+            del d["noise_threshold"]  # the default: sets made before the option keep their identity
         if self.orbit is None:  # per-sample Cycles noise by frame number (render.py); older sets
             d["noise"] = "frame"  # used the first-rendered sample's seed and cannot be resumed
         return d

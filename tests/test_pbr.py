@@ -163,3 +163,28 @@ def test_pbr_generation_does_not_print_the_cuda_probe_warning(tmp_path):
     """Issue 19.13: every PBR worker printed Cycles' 'CUEW initialization failed' (to stdout)."""
     proc = run_gen("pbr", "--out", str(tmp_path / "p"), "--count", "1", "--resolution", "64x32", "--samples", "1")
     assert "CUEW" not in proc.stdout + proc.stderr and "1 samples" in proc.stdout
+
+
+def test_without_adaptive_sampling_every_pixel_takes_all_samples_and_the_recipe_says_so(tmp_path):
+    """--noise-threshold 0 turns Cycles' adaptive sampling off (it stops a pixel once the *image* is
+    clean, so a glossy car's diffuse shading stays noisy: measured in docs/normals_from_shading.md);
+    the default recipe keeps the identity sets made before the option had; a bad value is one line."""
+    import subprocess
+    import sys
+
+    base = Recipe(kind="pbr", seed=0, width=64, height=32)
+    assert "noise_threshold" not in base.identity()
+    assert Recipe(kind="pbr", seed=0, width=64, height=32, noise_threshold=0.0).identity()["noise_threshold"] == 0.0
+    assert "noise_threshold" not in Recipe(kind="intrinsics", seed=0, width=64, height=32).identity()
+    probe = ("from blender_gen.generate import make_renderer; from blender_gen.recipe import Recipe\n"
+             "for t in (0.0, 0.03, 0.01):\n"
+             "    c = make_renderer(Recipe(kind='pbr', seed=0, width=64, height=32, noise_threshold=t)).scene.cycles\n"
+             "    print(c.use_adaptive_sampling, round(c.adaptive_threshold, 4))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert [line for line in out if line.startswith(("True", "False"))] == ["False 0.03", "True 0.03", "True 0.01"]
+    run_gen("pbr", "--out", str(tmp_path / "f"), "--count", "1", "--resolution", "64x32", "--noise-threshold", "0",
+            "--quiet")
+    assert json.loads((tmp_path / "f" / "dataset.json").read_text())["recipe"]["noise_threshold"] == 0.0
+    bad = run_gen("pbr", "--out", str(tmp_path / "n"), "--count", "1", "--noise-threshold", "nan", check=False)
+    assert bad.returncode and "--noise-threshold nan: expected a number in [0, 1)" in bad.stderr
+    assert not (tmp_path / "n").exists()
