@@ -56,7 +56,10 @@ class ModelConfig:
     # 39.9 / 38.2, albedo 74.1 / 72.8 against 39.7 / 46.5, speckle 3.6-3.9: so the default is the paper's R.
     # With w_shading_ren = 3 alone (no decomposition-side term): S0 25.1 / 25.6 / 26.3 deg (defaults 36.4-38.9),
     # S1 31.4-32.2 (38.3-38.8), speckle 1.3 / 1.7; but on the protocol at 32x64 (backgrounds) 46.1 / 52.2
-    # against the defaults' 40.7 / 41.4 on two seeds (docs/normals_from_shading.md).
+    # against the defaults' 40.7 / 41.4 on two seeds (docs/normals_from_shading.md). The same with
+    # shader_background = "environment" and loss.w_dec = 0 (the shader cannot draw a real image pixel
+    # for pixel, so that cycle paid H to copy it): 31.8 / 30.5, below the per-pixel prior's 33.2; the
+    # default waits for the cpu comparison.
     renderer: str = "net"
     # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
     # agree on a hidden code (S0 normals 27 -> 36 deg, speckle x2); one on the background only gave H a
@@ -103,6 +106,7 @@ class LossConfig:
     # measurements of docs/experiment_log.md "Making it learn": cycles at 10 (CycleGAN's and pix2pixHD's lambda),
     # GAN terms averaged, D_M's terms at a tenth, L_norm on the car only.
     w_ren: float = 10.0
+    # With renderer = "shader" on real images with backgrounds, 0 measured best (see renderer)
     w_dec: float = 10.0
     w_norm: float = 1.0
     w_adv: float = 1.0
