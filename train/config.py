@@ -58,7 +58,7 @@ class ModelConfig:
     # S1 31.4-32.2 (38.3-38.8), speckle 1.3 / 1.7; but on the protocol at 32x64 (backgrounds) 46.1 / 52.2
     # against the defaults' 40.7 / 41.4 on two seeds (docs/normals_from_shading.md). The same with
     # shader_background = "environment" and loss.w_dec = 0 (the shader cannot draw a real image pixel
-    # for pixel, so that cycle paid H to copy it): 31.8 / 30.5, below the per-pixel prior's 33.2; the
+    # for pixel, so that cycle paid H to copy it): 31.8 / 30.5 / 30.6, below the per-pixel prior's 33.2; the
     # default waits for the cpu comparison.
     renderer: str = "net"
     # The generator's share: 0 (measured) = R is the shader alone. A residual on the car let R and H
