@@ -14,7 +14,7 @@ import numpy as np
 
 from blender_gen.conversions import linear_to_srgb
 from blender_gen.recipe import Recipe
-from blender_gen.render import make_renderer
+from blender_gen.generate import make_renderer
 
 
 def main() -> None:
