@@ -39,23 +39,33 @@ def lum(x: np.ndarray) -> np.ndarray:
     return x @ LUMA
 
 
-def relative_residual(columns: list[np.ndarray], target: np.ndarray, ridge: float = 1e-6) -> float:
-    """Least-squares fit of `target` (p,) by the columns (p,) each; mean |residual| / mean |target|."""
+def fit(columns: list[np.ndarray], target: np.ndarray, ridge: float = 1e-6) -> np.ndarray:
+    """The least-squares fit (p,) of `target` (p,) by the columns (p,) each."""
     a = np.stack(columns, 1)
-    coef = np.linalg.solve(a.T @ a + ridge * np.eye(a.shape[1]), a.T @ target)
-    return float(np.mean(np.abs(a @ coef - target)) / max(np.mean(np.abs(target)), 1e-12))
+    return a @ np.linalg.solve(a.T @ a + ridge * np.eye(a.shape[1]), a.T @ target)
+
+
+def relative_residual(columns: list[np.ndarray], target: np.ndarray) -> float:
+    """mean |fit - target| / mean |target|."""
+    return float(np.mean(np.abs(fit(columns, target) - target)) / max(np.mean(np.abs(target)), 1e-12))
+
+
+CAR = 0.99  # whole car pixels: the edge mixes the background in
+
+
+def car_sh(sample: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The whole-car mask (H, W) and the SH basis (p, 9) of the unit normals on it."""
+    on = sample["mask"][..., 0] >= CAR
+    n = sample["normal"][on]
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+    return on, sh_basis(torch.from_numpy(n.T.copy()).float()[None, :, :, None])[0, :, :, 0].numpy().T
 
 
 def sh_fit_picture(sample: dict) -> np.ndarray:
     """The SH(N) fit of lum(diffuse_shading) on the car, as an (H, W) luminance (0 elsewhere)."""
-    on = sample["mask"][..., 0] >= 0.99
-    n = sample["normal"][on]
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
-    sh = sh_basis(torch.from_numpy(n.T.copy()).float()[None, :, :, None])[0, :, :, 0].numpy().T
-    target = lum(sample["diffuse_shading"][on])
-    coef = np.linalg.lstsq(sh, target, rcond=None)[0]
+    on, sh = car_sh(sample)
     out = np.zeros(on.shape)
-    out[on] = sh @ coef
+    out[on] = fit(list(sh.T), lum(sample["diffuse_shading"][on]))
     return out
 
 
@@ -69,7 +79,7 @@ def picture(samples: list[dict], out: Path, scale: int = 2) -> None:
               "SH(N) fit of it", "|fit - shading|"]
     rows = []
     for s in samples:
-        on = (s["mask"][..., 0] >= 0.99)[..., None]
+        on = (s["mask"][..., 0] >= CAR)[..., None]
         shade = lum(s["diffuse_shading"]) * on[..., 0]
         norm = max(float(np.percentile(shade[on[..., 0]], 99)), 1e-6)  # one scale for shading, fit and error
         fit = sh_fit_picture(s)
@@ -91,10 +101,7 @@ def picture(samples: list[dict], out: Path, scale: int = 2) -> None:
 
 
 def budget(sample: dict) -> dict[str, float]:
-    on = sample["mask"][..., 0] >= 0.99  # whole car pixels: the edge mixes the background in
-    n = sample["normal"][on]
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
-    sh = sh_basis(torch.from_numpy(n.T.copy()).float()[None, :, :, None])[0, :, :, 0].numpy().T  # (p, 9)
+    on, sh = car_sh(sample)
     a, f = lum(sample["albedo"][on]), lum(sample["reflection"][on])
     shading = lum(sample["diffuse_shading"][on])
     diffuse = lum(sample["diffuse_color"][on] * sample["diffuse_shading"][on])
@@ -135,7 +142,7 @@ def main() -> None:
     rows, shown = [], []
     for i in tqdm(range(min(len(ds), a.limit or len(ds))), desc="budget", unit="sample"):
         s = ds.load(i, ["normal", "albedo", "reflection", "mask", *LIGHT_LAYERS])
-        if int((s["mask"][..., 0] >= 0.99).sum()) < a.min_pixels:
+        if int((s["mask"][..., 0] >= CAR).sum()) < a.min_pixels:
             continue
         rows.append({"index": ds.rows[i]["index"], **budget(s)})
         if len(shown) < a.rows:

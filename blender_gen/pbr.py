@@ -17,6 +17,7 @@ from . import scene as S
 from .conversions import preview_srgb8
 from .dataset import LIGHT_LAYERS, save_png
 from .quiet import without_lines
+from .recipe import Recipe
 from .render import SampleRenderer
 
 
@@ -39,7 +40,7 @@ class PbrRenderer(SampleRenderer):
         S.configure_cycles(self.scene, self.recipe.width, self.recipe.height, self.recipe.samples, threads)
         cy = self.scene.cycles
         cy.use_adaptive_sampling = self.recipe.noise_threshold > 0
-        cy.adaptive_threshold = self.recipe.noise_threshold or 0.03
+        cy.adaptive_threshold = self.recipe.noise_threshold or Recipe.noise_threshold  # unused when off
         cy.adaptive_min_samples = min(4, self.recipe.samples)
         cy.use_denoising = True
         cy.denoiser = "OPENIMAGEDENOISE"

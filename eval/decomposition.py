@@ -61,14 +61,12 @@ def high_frequency(x: np.ndarray, on: np.ndarray) -> float:
 SHADING = "diffuse_shading"
 
 
-def shading_errors(pred: np.ndarray | None, gt: np.ndarray) -> dict[str, float]:
+def shading_errors(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """Scale-invariant L1 of (N, 3) linear diffuse shadings over the truth's mean: the
-    prediction's when given, and always a flat (constant) shading's, the bar it must beat."""
+    prediction's, and a flat (constant) shading's, the bar it must beat."""
     mean = max(float(np.mean(np.abs(gt))), 1e-12)
-    row = {"shading_flat_si_rel_l1": scale_invariant_l1(np.ones_like(gt), gt) / mean}
-    if pred is not None:
-        row["shading_si_rel_l1"] = scale_invariant_l1(pred, gt) / mean
-    return row
+    return {"shading_flat_si_rel_l1": scale_invariant_l1(np.ones_like(gt), gt) / mean,
+            "shading_si_rel_l1": scale_invariant_l1(pred, gt) / mean}
 
 
 def _unit(n: np.ndarray) -> np.ndarray:
