@@ -205,16 +205,15 @@ class Plan:
         or promises anything, a started run folder that holds another config (its training would
         refuse to resume)."""
         from train.checkpoint import newest_state
-        from train.config import ConfigError, config_from_dict, load_config
+        from train.config import ConfigError, config_from_dict, differing_sections, load_config
         from train.run_folder import RunFolder
 
         for name in self.runs:
-            cfg = load_config(*self._config_args(name)).to_dict()
+            cfg = load_config(*self._config_args(name))
             run = RunFolder(self.out / "runs" / name)
             if not run.exists() or newest_state(run.checkpoints) is None:
                 continue
-            saved = config_from_dict(run.options()["config"]).to_dict()
-            diff = [k for k in cfg if cfg[k] != saved.get(k)]
+            diff = differing_sections(cfg, config_from_dict(run.options()["config"]))
             if diff:
                 raise ConfigError(f"{run.root}: run {name!r} was trained with another config (section(s) {diff} "
                                   "differ); rerun with the options it started with, or choose another --out")

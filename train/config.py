@@ -469,6 +469,12 @@ LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywher
                  "loss.w_shading_ren": 0.0, "loss.w_shading_dec": 0.0, "run.ema_decay": 0.0}
 
 
+def differing_sections(a: Config, b: Config) -> list[str]:
+    """The config sections (data, model, loss, ...) in which two configs differ."""
+    da, db = a.to_dict(), b.to_dict()
+    return [k for k in da if da[k] != db.get(k)]
+
+
 def config_from_dict(data: dict) -> Config:
     """The config a run folder was trained with (its training_options.json "config")."""
     cfg = Config(name=data.get("name", "run"))

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
 from .checkpoint import (CheckpointError, latest_checkpoint, load_ema, load_newest, load_weights, newest_state,
                          save_checkpoint)
-from .config import Config, ConfigError, config_from_dict, unread_sections
+from .config import Config, ConfigError, config_from_dict, differing_sections, unread_sections
 from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
                    set_identity)
 from .model import build_model
@@ -202,7 +202,7 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
                  if given and str(Path(given).resolve()) != opts[k]]
         if started or not (changed or moved):
             if changed:
-                diff = [k for k in cfg.to_dict() if cfg.to_dict()[k] != saved.to_dict()[k]]
+                diff = differing_sections(cfg, saved)
                 raise ConfigError(f"--run-dir {run_dir} holds a run with another config (section(s) {diff} differ); "
                                   "resume it without --config/--set changes or choose a new --run-dir")
             if moved:
