@@ -240,7 +240,14 @@ def picture(args) -> None:
 
 def grid(args) -> None:
     variants = tomllib.loads(Path(args.variants).read_text())
+    # a file's top-level `base` list: --set values every variant of it starts from (the defaults its
+    # runs were measured under, so a later change of the defaults does not change what they mean);
+    # a variant of another kind (oracle, baselines) opts out with `base = false`
+    base = variants.pop("base", [])
     names = args.only or list(variants)
+    unknown = [n for n in names if n not in variants]
+    if unknown:
+        sys.exit(f"{args.variants}: no variant {', '.join(unknown)} (it has {', '.join(variants)})")
     Path(args.out).mkdir(parents=True, exist_ok=True)
     if args.save_dir:
         Path(args.save_dir).mkdir(parents=True, exist_ok=True)
@@ -256,7 +263,8 @@ def grid(args) -> None:
                    "--out", str(Path(args.out) / f"{name}_s{seed}.jsonl")]
             if args.save_dir:
                 cmd += ["--save", str(Path(args.save_dir) / f"{name}_s{seed}.safetensors"), "--half"]
-            cmd += [a for s in v.get("set", []) for a in ("--set", s)]
+            sets = [*(base if v.get("base", True) else []), *v.get("set", [])]
+            cmd += [a for s in sets for a in ("--set", s)]
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
     bad = 0
     for name, seed, p in procs:

@@ -39,7 +39,8 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    curves = [(f, "C0" if f.stem.startswith("full") else "C2", "-", f"GPU 256x512 {f.stem.replace('_s', ', seed ')}")
+    colours = {"full": "C0", "oracle": "C2", "shader": "C3"}  # by the variant name's first word
+    curves = [(f, colours.get(f.stem.split("_")[0], "C1"), "-", f"GPU 256x512 {f.stem.rsplit('_s', 1)[0]}, seed {f.stem.rsplit('_s', 1)[1]}")
               for f in sorted(a.gpu.glob("*.jsonl"))]
     curves += [(f, "C0", ":", f"CPU 64x128 full, {f.stem.split('_')[1]}") for f in a.cpu]
     curves += [(f, "C2", ":", f"CPU 64x128 oracle, {f.stem.split('_')[1]}") for f in a.cpu_oracle]
@@ -49,7 +50,7 @@ def main() -> None:
         for ax, (key, _) in zip(axes, PANELS):
             ax.plot([r["step"] for r in rs], [value(r, key) for r in rs], color=colour, ls=ls, lw=1.2 if ls == "-" else 0.9,
                     alpha=1.0 if ls == "-" else 0.7, label=label)
-        if bars is None and ls == "-":
+        if bars is None and ls == "-":  # the no-image bars of the GPU probe (the same for every GPU run)
             bars = rs[-1]
     for ax, (key, title) in zip(axes, PANELS):
         if bars is not None:

@@ -4,7 +4,8 @@ Columns: the probe's albedo | reflection | R of each run given (`NAME=WEIGHTS.sa
 trained by `objective_sweep.py grid --save-dir`) | the true image. One row per probe sample.
 
   python bench/sweep_grid.py --data .sweep/protocol_env.npz --samples 0 5 9 14 \\
-      --run "default=runs/full_s0.safetensors" --run "+ chroma=runs/full_chroma10_s0.safetensors" \\
+      --run "default=runs/full_s0.safetensors,model.renderer=net" \\
+      --run "+ chroma=runs/full_chroma10_s0.safetensors,model.renderer=net" \\
       --out grid.png
 """
 from __future__ import annotations
@@ -22,7 +23,9 @@ sys.path.insert(0, str(ROOT))
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="the objective_sweep pack the runs trained on")
-    ap.add_argument("--run", action="append", required=True, help="LABEL=WEIGHTS.safetensors")
+    ap.add_argument("--run", action="append", required=True,
+                    help="LABEL=WEIGHTS.safetensors[,key=value,...] (the run's --set values that shape the model, "
+                         "e.g. model.renderer=net for runs of the paper's R)")
     ap.add_argument("--config", default="cpu-small")
     ap.add_argument("--samples", type=int, nargs="+", default=[0, 1, 2, 3])
     ap.add_argument("--scale", type=int, default=3, help="pixel repeat of the (small) probe images")
@@ -43,10 +46,11 @@ def main() -> None:
     h, w = maps.shape[2:]
     columns = [maps[:, 3:6], maps[:, 6:9]]
     for spec in a.run:
-        label, _, weights = spec.partition("=")
+        label, _, rest = spec.partition("=")
+        weights, *sets = rest.split(",")
         if not weights:
-            sys.exit(f"--run {spec!r}: expected LABEL=WEIGHTS.safetensors")
-        model = build_model(load_config(a.config, [f"data.height={h}", f"data.width={w}"]))
+            sys.exit(f"--run {spec!r}: expected LABEL=WEIGHTS.safetensors[,key=value,...]")
+        model = build_model(load_config(a.config, [f"data.height={h}", f"data.width={w}", *sets]))
         model.load_state_dict({k: v.float() for k, v in load_file(weights).items()})
         model.eval()
         with torch.no_grad():

@@ -16,3 +16,23 @@ def test_every_bench_script_imports():
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_every_sweep_variant_is_a_valid_config():
+    """Each variant of the sweep files, with its file's `base` (the defaults it was measured under),
+    loads: a default that changes under a file, or a base a variant's kind refuses, fails here."""
+    import tomllib
+
+    from train.config import load_config
+
+    files = sorted((ROOT / "bench").glob("variants*.toml"))
+    assert len(files) >= 4
+    for path in files:
+        variants = tomllib.loads(path.read_text())
+        base = variants.pop("base", [])
+        for name, v in variants.items():
+            sets = [*(base if v.get("base", True) else []), *v.get("set", [])]
+            load_config(v.get("config", "cpu-small"), sets)  # raises ConfigError on a bad key or value
+    shading = tomllib.loads((ROOT / "bench" / "variants_shading.toml").read_text())
+    cfg = load_config("cpu-small", [*shading["base"], *shading["default"]["set"]])
+    assert cfg.model.renderer == "net" and cfg.loss.w_dec == 10  # "default" = the previous defaults, pinned
