@@ -47,7 +47,7 @@ class SanityBudget:
 
 SANITY_BUDGETS = {
     "sanity": SanityBudget("128x64", (32, 64), 800, 240, 48, 3000, (0, 1, 2),
-                           note="training at 64x32, cpu-small widths, 3 seeds per setting (docs/experiment_log.md: Making it learn)"),
+                           note="training at 64x32, cpu-small widths, 3 seeds per setting by default (docs/experiment_log.md: Making it learn)"),
     "sanity-smoke": SanityBudget("128x64", (32, 64), 16, 8, 4, 6, (0,), pbr_samples=1,
                                  widths=("model.r_ngf=8", "model.r_downsample=2", "model.r_blocks=1", "model.h_ngf=8",
                                          "model.h_blocks=1", "model.d_ndf=8"),
@@ -300,7 +300,10 @@ def run_sanity(plan: SanityPlan) -> Path:
         for k, done in enumerate(pool.map(train, runs), 1):
             click.echo(f"[train {k}/{len(runs)}] {done} done")
     table, results = summarize(plan)
-    atomic_write_bytes(plan.out / "summary.md", (f"# Sanity benchmark ({plan.name})\n\n{plan.budget.note}\n\n"
+    ran = (f"This run: settings {', '.join(plan.settings)}; training seeds {', '.join(map(str, plan.budget.seeds))}; "
+           f"{plan.budget.steps} steps; overrides {' '.join(plan.overrides) or 'none'}; "
+           f"oracle {'yes' if plan.oracle else 'no'}.")
+    atomic_write_bytes(plan.out / "summary.md", (f"# Sanity benchmark ({plan.name})\n\n{plan.budget.note}\n\n{ran}\n\n"
                                                  f"Pass: {results['criterion']}.\n\n{table}\n").encode())
     atomic_write_json(plan.out / "summary.json", results)
     png = curves_png(plan)
