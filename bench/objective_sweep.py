@@ -238,12 +238,19 @@ def picture(args) -> None:
     print(args.out)
 
 
-def grid(args) -> None:
-    variants = tomllib.loads(Path(args.variants).read_text())
-    # a file's top-level `base` list: --set values every variant of it starts from (the defaults its
-    # runs were measured under, so a later change of the defaults does not change what they mean);
-    # a variant of another kind (oracle, baselines) opts out with `base = false`
+def load_variants(path: str | Path) -> dict[str, dict]:
+    """A variants file's variants, each with its full `set` list. A file's top-level `base` list holds
+    --set values every variant of it starts from (the defaults its runs were measured under, so a
+    later change of the defaults does not change what they mean); a variant of another kind (oracle,
+    baselines) opts out with `base = false`."""
+    variants = tomllib.loads(Path(path).read_text())
     base = variants.pop("base", [])
+    return {name: {**v, "set": [*(base if v.get("base", True) else []), *v.get("set", [])]}
+            for name, v in variants.items()}
+
+
+def grid(args) -> None:
+    variants = load_variants(args.variants)
     names = args.only or list(variants)
     unknown = [n for n in names if n not in variants]
     if unknown:
@@ -263,8 +270,7 @@ def grid(args) -> None:
                    "--out", str(Path(args.out) / f"{name}_s{seed}.jsonl")]
             if args.save_dir:
                 cmd += ["--save", str(Path(args.save_dir) / f"{name}_s{seed}.safetensors"), "--half"]
-            sets = [*(base if v.get("base", True) else []), *v.get("set", [])]
-            cmd += [a for s in sets for a in ("--set", s)]
+            cmd += [a for s in v["set"] for a in ("--set", s)]
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
     bad = 0
     for name, seed, p in procs:
