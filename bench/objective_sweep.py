@@ -10,7 +10,10 @@ at once on one GPU (or, slowly, on the CPU) without EXR decoding.
            s1        "real" = PBR images, background masked to black (every pixel expressible)
            s0        "real" = the analytic shading (train.sanity.shade) of other intrinsics
   run    one variant and seed -> a JSON-lines curve of probe figures
-  grid   variants x seeds as parallel processes (one thread each)
+  grid   variants x seeds as parallel processes (one thread each); --runs-dir keeps a run folder
+         per run (as `iae-train fit`'s), resumed by a rerun and read by `iae-eval report`
+  slim   those run folders -> their generators' weights in tars small enough to leave a GPU lease
+  unslim the tars' folders -> run folders `iae-eval report` reads
   picture  saved weights of several runs on the first probe images, labelled
 
   python bench/objective_sweep.py pack --setting s0 --intrinsics I --probe P --out s0.npz
@@ -31,6 +34,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from train.run_folder import RunFolder  # noqa: E402
 
 
 def pack(args) -> None:
@@ -72,7 +77,13 @@ def pack(args) -> None:
     else:
         packed = {k: v.numpy().astype(np.float16) for k, v in arrays.items()}
         enc_mask = lambda t: t.numpy().astype(np.float16)  # noqa: E731
-    np.savez_compressed(args.out, **packed, PM=enc_mask(probe.masks), setting=args.setting)
+    from train.data import set_identity
+
+    # the sets a pack came from, so a run trained on it (`run --run-dir`) records them as `fit` does
+    sources = {k: {"path": str(Path(v).resolve()), "identity": set_identity(Path(v))}
+               for k, v in (("intrinsics", args.intrinsics), ("real", args.real), ("probe", args.probe)) if v}
+    np.savez_compressed(args.out, **packed, PM=enc_mask(probe.masks), setting=args.setting,
+                        sources=json.dumps(sources))
     print(f"{args.out}: M_s {tuple(ms.shape)}, real {tuple(xr.shape)}, probe {tuple(probe.images.shape)}")
 
 
@@ -153,7 +164,11 @@ def run(args) -> None:
     probe = ProbeSet(t["PX"], t["PY"], t["PM"], ca, cr, pixel_prior(t["MS"]))
     paired = getattr(model, "paired", False)
     gen = torch.Generator(device="cpu").manual_seed(args.seed)
-    out = open(args.out, "w") if args.out else sys.stdout
+    start = 0
+    run_dir = RunFolder(args.run_dir) if args.run_dir else None
+    if run_dir is not None:
+        start = open_run(run_dir, z, args, cfg, model, opts, scheds, ema, gen)
+    out = open(args.out, "a" if start else "w") if args.out else sys.stdout
 
     def draw(x: torch.Tensor, idx: torch.Tensor, flips: torch.Tensor, stack: bool) -> torch.Tensor:
         b = x[idx.to(dev)].clone()
@@ -162,7 +177,8 @@ def run(args) -> None:
         return b
 
     t0 = time.time()
-    for step in range(1, args.steps + 1):
+    step = start
+    for step in range(start + 1, min(args.steps, args.stop_at or args.steps) + 1):
         ir = torch.randint(0, len(t["XR"]), (args.batch,), generator=gen)
         im = ir if paired else torch.randint(0, len(t["MS"]), (args.batch,), generator=gen)
         f_m, f_i = torch.rand(args.batch, generator=gen) < 0.5, torch.rand(args.batch, generator=gen) < 0.5
@@ -177,7 +193,7 @@ def run(args) -> None:
             s.step()
         if ema is not None:
             update_ema(ema, model, cfg.run.ema_decay, step)
-        late = args.minutes is not None and time.time() - t0 > args.minutes * 60
+        late = (args.minutes is not None and time.time() - t0 > args.minutes * 60) or step == args.stop_at
         if step % args.every == 0 or step == args.steps or late:
             row = {"step": step, "t": round(time.time() - t0, 1), "variant": args.name, "seed": args.seed,
                    **{k: round(v, 4) for k, v in evaluate_probe(model, probe).items()},
@@ -186,14 +202,139 @@ def run(args) -> None:
                    **{k: round(v, 4) for k, v in {**g_logs, **d_logs}.items()}}
             out.write(json.dumps(row) + "\n")
             out.flush()
+            if run_dir is not None:
+                with open(run_dir.stats_path, "a") as fh:
+                    fh.write(json.dumps(row) + "\n")
         if late:
             break
+    if run_dir is not None and step > start:
+        from train.checkpoint import save_checkpoint
+
+        save_checkpoint(run_dir.checkpoints, step, model, opts, scheds, ema=ema,
+                        extra={"sweep_generator": gen.get_state().tolist()})
     if args.save:
         from safetensors.torch import save_file
 
         dtype = torch.float16 if args.half else None  # half the bytes: enough to render pictures from
         save_file({k: (v.to(dtype) if dtype and v.is_floating_point() else v).contiguous().cpu()
                    for k, v in model.state_dict().items()}, args.save)
+
+
+def open_run(run: "RunFolder", z, args, cfg, model, opts, scheds, ema, gen) -> int:
+    """A run folder for a sweep run, as `iae-train fit` writes one (config, the pack's source sets and
+    their identities, checkpoints with the EMA), so `iae-eval report` reads it; its newest checkpoint
+    resumes the run (weights, optimisers, schedules, EMA, the batch sampler's state). The step to go on from."""
+    import torch
+
+    from blender_gen.dataset import atomic_write_json
+    from train.checkpoint import load_checkpoint, load_ema, newest_state
+    from train.config import config_from_dict, differing_sections
+
+    if "sources" not in z.files:
+        sys.exit(f"--run-dir needs a pack that records its sets; repack {args.data} with this version")
+    sources = json.loads(str(z["sources"]))
+    if "real" not in sources:
+        sys.exit(f"--run-dir: {args.data} has no real set (an s0 pack); a run folder needs one")
+    if run.exists():
+        diff = differing_sections(cfg, config_from_dict(run.options()["config"]))
+        if diff:
+            sys.exit(f"--run-dir {run.root}: a run with another config (section(s) {diff} differ)")
+        newest = newest_state(run.checkpoints)
+        if newest is None:
+            return 0
+        state = load_checkpoint(newest[0], model, opts, scheds)
+        if ema is not None:
+            load_ema(newest[0], ema)
+        gen.set_state(torch.tensor(state["extra"]["sweep_generator"], dtype=torch.uint8))
+        return int(state["step"])
+    run.root.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(run.options_path, {
+        "config": cfg.to_dict(), "intrinsics": sources["intrinsics"]["path"], "real": sources["real"]["path"],
+        "probe": sources.get("probe", {}).get("path"),
+        "data_identity": {k: sources[k]["identity"] for k in ("intrinsics", "real")},
+        "trained_by": {"tool": "bench/objective_sweep.py run", "pack": Path(args.data).name,
+                       "setting": str(z["setting"]), "batch": args.batch}})
+    return 0
+
+
+def slim(args) -> None:
+    """Run folders (`grid --runs-dir`) -> what a report needs of each, small enough to come back from
+    a GPU lease: the generators' moving-average weights in float16, the options, stats and step,
+    in tar files of at most 15 MiB (runs1.tar, runs2.tar, ...)."""
+    import tarfile
+    import tempfile
+
+    from safetensors.torch import load_file, save_file
+
+    from train.checkpoint import newest_state
+
+    stage = Path(tempfile.mkdtemp())
+    folders = []
+    for run in sorted(p for p in Path(args.runs_dir).iterdir() if (p / "training_options.json").exists()):
+        newest = newest_state(run / "checkpoints")
+        if newest is None:
+            continue
+        tensors = load_file(str(newest[0]))
+        prefix = "ema." if any(k.startswith("ema.") for k in tensors) else "model."
+        keep = {k[len(prefix):]: v.half() if v.is_floating_point() else v for k, v in tensors.items()
+                if k.startswith((prefix + "R.", prefix + "H."))}
+        d = stage / run.name
+        d.mkdir()
+        save_file({k: v.contiguous() for k, v in keep.items()}, str(d / "generators.safetensors"))
+        (d / "state.json").write_text(json.dumps({"step": newest[1], "weights": prefix.rstrip(".")}))
+        for f in ("training_options.json", "stats.jsonl"):
+            if (run / f).exists():
+                (d / f).write_bytes((run / f).read_bytes())
+        folders.append(d)
+        print(f"{run.name}: step {newest[1]}, {sum(v.numel() for v in keep.values())} weights")
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    k, size, tar = 0, 0, None
+    for d in folders:
+        n = sum(f.stat().st_size for f in d.iterdir())
+        if tar is None or size + n > 15 * 2**20:
+            if tar is not None:
+                tar.close()
+            k, size = k + 1, 0
+            tar = tarfile.open(Path(args.out) / f"runs{k}.tar", "w")
+        tar.add(d, arcname=d.name)
+        size += n
+    if tar is not None:
+        tar.close()
+
+
+def unslim(args) -> None:
+    """`slim`'s folders -> run folders `iae-eval report` reads: a checkpoint whose generators (raw and
+    moving average) are the kept weights. The discriminators were not kept (no figure uses them):
+    they are the fresh initialisation, and the state says so; such a run cannot resume training."""
+    import copy
+
+    import torch
+    from safetensors.torch import load_file
+
+    from blender_gen.dataset import atomic_write_json
+    from train.checkpoint import save_checkpoint
+    from train.config import config_from_dict
+    from train.model import build_model
+
+    for d in sorted(p for p in Path(args.slim).iterdir() if (p / "generators.safetensors").exists()):
+        run = RunFolder(Path(args.runs_dir) / d.name)
+        if run.exists():
+            sys.exit(f"--runs-dir: {run.root} exists; unslim writes new run folders only")
+        opts = json.loads((d / "training_options.json").read_text())
+        state = json.loads((d / "state.json").read_text())
+        cfg = config_from_dict(opts["config"])
+        torch.manual_seed(cfg.run.seed)
+        model = build_model(cfg)
+        kept = {k: v.float() for k, v in load_file(str(d / "generators.safetensors")).items()}
+        model.load_state_dict({**model.state_dict(), **kept})
+        run.root.mkdir(parents=True)
+        atomic_write_json(run.options_path, {**opts, "slim": "generators only, float16 (objective_sweep.py slim)"})
+        if (d / "stats.jsonl").exists():
+            run.stats_path.write_bytes((d / "stats.jsonl").read_bytes())
+        save_checkpoint(run.checkpoints, state["step"], model, {}, {}, ema=copy.deepcopy(model),
+                        extra={"slim": f"generators' {state['weights']} weights only (float16); discriminators freshly "
+                                        "initialised; not resumable"})
+        print(f"{run.root}: step {state['step']}")
 
 
 def picture(args) -> None:
@@ -267,9 +408,12 @@ def grid(args) -> None:
                    "--steps", str(args.steps), "--every", str(args.every), "--config", v.get("config", "cpu-small"),
                    "--device", args.device, "--batch", str(args.batch), "--decay", str(v.get("decay", args.decay)),
                    *(["--minutes", str(args.minutes)] if args.minutes else []),
+                   *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
                    "--out", str(Path(args.out) / f"{name}_s{seed}.jsonl")]
             if args.save_dir:
                 cmd += ["--save", str(Path(args.save_dir) / f"{name}_s{seed}.safetensors"), "--half"]
+            if args.runs_dir:
+                cmd += ["--run-dir", str(Path(args.runs_dir) / f"{name}_s{seed}")]
             cmd += [a for s in v["set"] for a in ("--set", s)]
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
     bad = 0
@@ -307,9 +451,12 @@ def main() -> None:
     r.add_argument("--device", default="auto")
     r.add_argument("--threads", type=int, default=1)
     r.add_argument("--minutes", type=float, default=None, help="stop (with a last probe row) after this long")
+    r.add_argument("--stop-at", type=int, default=None, help="stop (with a last probe row) at this step")
     r.add_argument("--out", default=None)
     r.add_argument("--save", default=None)
     r.add_argument("--half", action="store_true", help="save the weights as float16")
+    r.add_argument("--run-dir", default=None, help="a run folder (as iae-train fit's) to checkpoint into at the "
+                   "end or at --minutes, and to resume from; needs a protocol pack")
     g = sub.add_parser("grid")
     g.add_argument("--data", required=True)
     g.add_argument("--variants", required=True)
@@ -321,8 +468,16 @@ def main() -> None:
     g.add_argument("--decay", type=float, default=0.5, help="decay_start as a fraction of --steps (a variant's `decay` wins)")
     g.add_argument("--device", default="auto")
     g.add_argument("--minutes", type=float, default=None)
+    g.add_argument("--stop-at", type=int, default=None)
     g.add_argument("--out", required=True)
     g.add_argument("--save-dir", default=None, help="save every run's final weights (float16) here")
+    g.add_argument("--runs-dir", default=None, help="a run folder per run here (VARIANT_sSEED), resumed by a rerun")
+    sl = sub.add_parser("slim")
+    sl.add_argument("--runs-dir", required=True)
+    sl.add_argument("--out", required=True)
+    us = sub.add_parser("unslim")
+    us.add_argument("--slim", required=True, help="a folder holding slim's run folders (its tars unpacked)")
+    us.add_argument("--runs-dir", required=True)
     pc = sub.add_parser("picture")
     pc.add_argument("--data", required=True)
     pc.add_argument("--config", default="cpu-small")
@@ -331,7 +486,7 @@ def main() -> None:
     pc.add_argument("--out", required=True)
     pc.add_argument("runs", nargs="+", help="LABEL=WEIGHTS.safetensors[,key=value,...] (the variant's --set values)")
     a = ap.parse_args()
-    {"pack": pack, "run": run, "grid": grid, "picture": picture}[a.cmd](a)
+    {"pack": pack, "run": run, "grid": grid, "slim": slim, "unslim": unslim, "picture": picture}[a.cmd](a)
 
 
 if __name__ == "__main__":

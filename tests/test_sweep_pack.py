@@ -26,3 +26,72 @@ def test_jpeg_packs_keep_every_map_and_their_order(tmp_path):
     z = np.load(tmp_path / "p.npz")  # no pickle: every array is numeric
     assert np.array_equal(load_packed(z, "MS"), back)
     assert unpack(load_packed(z, "PM"), mask=True).max() == 1.0
+
+
+def _synthetic_pack(path: Path) -> None:
+    """A protocol pack of random maps at 32x64, with the sources a real pack records."""
+    import json
+
+    rng = np.random.default_rng(1)
+    u8 = lambda *shape: rng.integers(0, 256, shape).astype(np.uint8)  # noqa: E731
+    sources = {k: {"path": f"/data/{k}", "identity": {"kind": k, "count": 8, "manifest_sha256": "0" * 64}}
+               for k in ("intrinsics", "real", "probe")}
+    np.savez_compressed(path, MS=u8(8, 9, 32, 64), XR=u8(4, 3, 32, 64), YR=u8(4, 9, 32, 64), PX=u8(2, 3, 32, 64),
+                        PY=u8(2, 9, 32, 64), PM=(u8(2, 1, 32, 64) > 100).astype(np.uint8) * 255,
+                        setting="protocol", sources=json.dumps(sources))
+
+
+def test_a_sweep_run_stopped_and_resumed_from_its_run_folder_matches_one_run_through(tmp_path, monkeypatch):
+    """`run --run-dir` checkpoints as `iae-train fit` does and resumes bit for bit (weights,
+    optimisers, schedules, EMA, the batch sampler), so a GPU lease can train in parts; the folder
+    records the pack's source sets for `iae-eval report`."""
+    import json
+
+    import torch
+
+    from objective_sweep import main
+    from train.inference import load_run_checkpoint
+
+    _synthetic_pack(tmp_path / "p.npz")
+    threads = torch.get_num_threads()
+
+    def run(name: str, *extra: str) -> None:
+        monkeypatch.setattr(sys, "argv", [
+            "objective_sweep.py", "run", "--data", str(tmp_path / "p.npz"), "--steps", "6", "--every", "2", "--batch", "2",
+            "--device", "cpu", "--threads", str(threads), "--out", str(tmp_path / f"{name}.jsonl"),
+            "--run-dir", str(tmp_path / name), "--set", "model.r_ngf=8", "--set", "model.h_ngf=8",
+            "--set", "model.d_ndf=8", *extra])
+        main()
+
+    run("through")
+    run("parts", "--stop-at", "3")
+    assert (tmp_path / "parts" / "checkpoints" / "step_00000003.safetensors").exists()
+    run("parts", "--stop-at", "3")  # already there: nothing more
+    assert not (tmp_path / "parts" / "checkpoints" / "step_00000004.safetensors").exists()
+    run("parts")
+    rows = {n: [json.loads(x) for x in (tmp_path / f"{n}.jsonl").read_text().splitlines()] for n in ("through", "parts")}
+    assert [r["step"] for r in rows["parts"]] == [2, 3, 4, 6]
+    strip = lambda r: {k: v for k, v in r.items() if k != "t"}  # noqa: E731
+    assert strip(rows["parts"][-1]) == strip(rows["through"][-1])  # the same figures at step 6
+    opts = json.loads((tmp_path / "parts" / "training_options.json").read_text())
+    assert opts["intrinsics"] == "/data/intrinsics" and opts["data_identity"]["real"]["kind"] == "real"
+    cfg, model, step = load_run_checkpoint(tmp_path / "parts")[:3]
+    assert step == 6 and model.weights == "moving average"
+
+    # slim (what leaves a GPU lease: the generators' EMA weights in float16) and back: the same H
+    import tarfile
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (tmp_path / "parts").rename(runs / "parts")
+    monkeypatch.setattr(sys, "argv", ["objective_sweep.py", "slim", "--runs-dir", str(runs), "--out", str(tmp_path / "tars")])
+    main()
+    with tarfile.open(tmp_path / "tars" / "runs1.tar") as tar:
+        tar.extractall(tmp_path / "back", filter="data")
+    monkeypatch.setattr(sys, "argv", ["objective_sweep.py", "unslim", "--slim", str(tmp_path / "back"),
+                                      "--runs-dir", str(tmp_path / "restored")])
+    main()
+    _, back, step = load_run_checkpoint(tmp_path / "restored" / "parts")[:3]
+    x = torch.rand(1, 3, 32, 64) * 2 - 1
+    with torch.no_grad():
+        assert step == 6 and (back.decompose(x) - model.decompose(x)).abs().max() < 0.02  # float16 weights
