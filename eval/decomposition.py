@@ -133,6 +133,9 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
         if pred["normal"].shape != gt["normal"].shape:
             raise DatasetError(f"{predictions}: sample {row['index']} is {pred['normal'].shape[1]}x"
                                f"{pred['normal'].shape[0]}, ground truth {gt['normal'].shape[1]}x{gt['normal'].shape[0]}")
+        if not (gt["mask"][..., 0] >= 0.5).any():  # no car pixel to score: a broken or mislabelled sample
+            raise DatasetError(f"--data {data}/{row['file']}: the ground-truth mask is empty (sample {row['index']}); "
+                               "a Table-3 sample must show its car: regenerate it or leave it out")
         scores, ang = score_sample(pred, gt)
         rows.append({"index": row["index"], "car": row["car"]["name"], **scores})
         all_angles.append(ang)

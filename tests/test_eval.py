@@ -337,6 +337,24 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     assert fourth["dec"] != third["dec"], "the report scores the retrained model, not the cached predictions of the old one"
 
 
+def test_a_sample_without_car_pixels_is_named_not_scored(tmp_path):
+    from blender_gen.dataset import read_exr, sample_filename, sha256_file, write_exr
+
+    pbr = tiny_intrinsics(tmp_path / "pbr", n=3, kind="pbr")
+    preds = tmp_path / "pred"
+    shutil.copytree(pbr, preds)
+    layers = read_exr(pbr / sample_filename(1))
+    write_exr(pbr / sample_filename(1), {**layers, "mask": np.zeros_like(layers["mask"])})
+    rows = [json.loads(line) for line in (pbr / "manifest.jsonl").read_text().splitlines()]
+    gt = [{**r, "sha256": sha256_file(pbr / r["file"])} for r in rows]  # sample 1 rewritten
+    (pbr / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in gt))
+    (preds / "manifest.jsonl").write_text("".join(json.dumps({**r, "source_sha256": g["sha256"]}) + "\n"
+                                                  for r, g in zip(rows, gt)))
+    bad = _cli("decomposition", "--predictions", str(preds), "--data", str(pbr), "--quiet", check=False)
+    assert bad.returncode == 1 and "Traceback" not in bad.stderr
+    assert f"{pbr}/{sample_filename(1)}: the ground-truth mask is empty (sample 1)" in bad.stderr, bad.stderr
+
+
 def test_predictions_of_another_set_are_refused_and_shortfalls_exit_nonzero(tmp_path):
     pbr = tiny_intrinsics(tmp_path / "pbr", n=3, kind="pbr", seed=1)
     other = tiny_intrinsics(tmp_path / "other", n=3, kind="pbr", seed=2)
