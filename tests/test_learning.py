@@ -255,6 +255,19 @@ def _fit(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "train.cli", "fit", *args], capture_output=True, text=True, cwd=ROOT)
 
 
+def test_diagnose_names_a_run_of_another_kind(data, tmp_path):
+    from train.config import load_config
+
+    run = tmp_path / "cyclegan_run"
+    run.mkdir()
+    (run / "training_options.json").write_text(json.dumps({"config": load_config("cyclegan").to_dict(),
+                                                           "intrinsics": str(data["pbr"]), "real": str(data["pbr"])}))
+    proc = subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--probe", str(data["pbr"])],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert f"--run {run}: a cyclegan run; diagnose measures" in proc.stderr, proc.stderr
+
+
 def test_fit_probe_logs_curves_and_diagnose_reads_the_run(data, tmp_path):
     run = tmp_path / "run"
     proc = _fit("--config", "cpu-small", "--intrinsics", str(data["intr"]), "--real", str(data["pbr"]),

@@ -74,6 +74,9 @@ def diagnose_run(run_dir: Path, probe: Path, checkpoint: Path | None = None, bat
     from .run_folder import RunFolder
 
     opts, cfg = load_run_options(run_dir)
+    if cfg.model.kind != "iae":  # before any weights or data are read
+        raise ValueError(f"--run {run_dir}: a {cfg.model.kind} run; diagnose measures the Intrinsic Autoencoder's "
+                         "loss terms (model.kind = 'iae')")
     own = RunFolder(run_dir).checkpoints.resolve()
     if checkpoint is not None and Path(checkpoint).resolve().parent != own:  # its figures would carry this run's name
         raise ValueError(f"--checkpoint {checkpoint}: not a checkpoint of --run {run_dir} (those are in {own})")
