@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -200,11 +201,12 @@ def run(args) -> None:
                    **({k: round(v, 4) for k, v in evaluate_probe(ema, probe, prefix=EMA_PREFIX, references=False).items()}
                       if ema is not None else {}),
                    **{k: round(v, 4) for k, v in {**g_logs, **d_logs}.items()}}
-            out.write(json.dumps(row) + "\n")
+            line = json.dumps(row) + "\n"
+            out.write(line)
             out.flush()
             if run_dir is not None:
                 with open(run_dir.stats_path, "a") as fh:
-                    fh.write(json.dumps(row) + "\n")
+                    fh.write(line)
         if late:
             break
     if run_dir is not None and step > start:
@@ -284,7 +286,7 @@ def slim(args) -> None:
         (d / "state.json").write_text(json.dumps({"step": newest[1], "weights": prefix.rstrip(".")}))
         for f in ("training_options.json", "stats.jsonl"):
             if (run / f).exists():
-                (d / f).write_bytes((run / f).read_bytes())
+                shutil.copyfile(run / f, d / f)
         folders.append(d)
         print(f"{run.name}: step {newest[1]}, {sum(v.numel() for v in keep.values())} weights")
     Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -330,7 +332,7 @@ def unslim(args) -> None:
         run.root.mkdir(parents=True)
         atomic_write_json(run.options_path, {**opts, "slim": "generators only, float16 (objective_sweep.py slim)"})
         if (d / "stats.jsonl").exists():
-            run.stats_path.write_bytes((d / "stats.jsonl").read_bytes())
+            shutil.copyfile(d / "stats.jsonl", run.stats_path)
         save_checkpoint(run.checkpoints, state["step"], model, {}, {}, ema=copy.deepcopy(model),
                         extra={"slim": f"generators' {state['weights']} weights only (float16); discriminators freshly "
                                         "initialised; not resumable"})

@@ -75,8 +75,8 @@ def _unit(n: np.ndarray) -> np.ndarray:
 
 def score_sample(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> tuple[dict, np.ndarray]:
     on = gt["mask"][..., 0] >= 0.5
-    if not on.any():
-        raise DatasetError("ground-truth mask is empty")
+    if not on.any():  # no car pixel to score: a broken or mislabelled sample
+        raise DatasetError("the ground-truth mask is empty")
     ang = normal_angles(pred["normal"][on], gt["normal"][on])
     row = {
         "pixels": int(on.sum()),
@@ -133,10 +133,11 @@ def score_predictions(data: Path, predictions: Path, limit: int | None = None,
         if pred["normal"].shape != gt["normal"].shape:
             raise DatasetError(f"{predictions}: sample {row['index']} is {pred['normal'].shape[1]}x"
                                f"{pred['normal'].shape[0]}, ground truth {gt['normal'].shape[1]}x{gt['normal'].shape[0]}")
-        if not (gt["mask"][..., 0] >= 0.5).any():  # no car pixel to score: a broken or mislabelled sample
-            raise DatasetError(f"--data {data}/{row['file']}: the ground-truth mask is empty (sample {row['index']}); "
-                               "a Table-3 sample must show its car: regenerate it or leave it out")
-        scores, ang = score_sample(pred, gt)
+        try:
+            scores, ang = score_sample(pred, gt)
+        except DatasetError as exc:  # name the sample score_sample cannot know
+            raise DatasetError(f"--data {data}/{row['file']}: {exc} (sample {row['index']}); a Table-3 sample must "
+                               "show its car: regenerate it or leave it out") from None
         rows.append({"index": row["index"], "car": row["car"]["name"], **scores})
         all_angles.append(ang)
     ang = np.concatenate(all_angles)

@@ -42,10 +42,8 @@ def supervised_losses(model, out: dict, maps: torch.Tensor, masks: torch.Tensor)
 
 
 def diagnose(model, m_s: torch.Tensor, i_r: torch.Tensor, maps: torch.Tensor, masks: torch.Tensor) -> dict:
-    """{term: {"weight", "loss", net: {"grad_norm", "cosine"}}} for every generator term and the total."""
-    if not hasattr(model, "loss_terms"):
-        raise ValueError("diagnose measures the Intrinsic Autoencoder's terms (model.kind = 'iae'); this run is "
-                         "another kind")
+    """{term: {"weight", "loss", net: {"grad_norm", "cosine"}}} for every generator term and the total, of an
+    Intrinsic Autoencoder (`diagnose_run` refuses runs of other kinds by name)."""
     model.train()  # the gradient training sees (instance norm behaves the same either way)
     out = model.forward_all(m_s, i_r, everything=True)
     terms = model.loss_terms(out)
