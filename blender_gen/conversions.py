@@ -7,29 +7,29 @@ from __future__ import annotations
 
 import numpy as np
 
-# colour-science's IEC 61966-2-1 sRGB transfer functions; imported lazily because
-# `import colour` costs ~0.5 s and most processes touch only a few conversions.
-_colour = None
+# The IEC 61966-2-1 sRGB transfer functions exactly as colour-science computes them
+# (`colour.models.eotf_sRGB` / `eotf_inverse_sRGB`, tests/test_pure.py checks bit-equality).
+# Written out because `import colour` loads its plotting stack (matplotlib, SciPy's interpolation):
+# seconds of start-up in every process that converts one image.
+_L_KNEE = 0.0031308
+_V_KNEE = _L_KNEE * 12.92  # colour-science's eotf_inverse_sRGB(0.0031308): the inverse's knee, linear side
 
 
-def _cs():
-    global _colour
-    if _colour is None:
-        import colour  # noqa: PLC0415
-
-        _colour = colour
-    return _colour
+def _spow(a: np.ndarray, p: float) -> np.ndarray:
+    """sign(a) |a|^p (colour-science's `spow`): defined for negative inputs."""
+    return np.sign(a) * np.abs(a) ** p
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     """sRGB-encoded [0, 1] -> linear."""
-    return np.asarray(_cs().models.eotf_sRGB(np.asarray(x, dtype=np.float64)))
+    v = np.asarray(x, dtype=np.float64)
+    return np.where(v <= _V_KNEE, v / 12.92, _spow((v + 0.055) / 1.055, 2.4))
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """Linear -> sRGB-encoded, clipped to [0, 1] (HDR values saturate)."""
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.asarray(_cs().models.eotf_inverse_sRGB(x))
+    lin = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
+    return np.where(lin <= _L_KNEE, lin * 12.92, 1.055 * _spow(lin, 1 / 2.4) - 0.055)
 
 
 COLOUR_LAYERS = ("albedo", "reflection", "rgb")

@@ -21,6 +21,23 @@ if _WORKERS > 1:
     os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(TEST_THREADS)
 
 
+def invoke_here(main, *args, env: dict | None = None) -> subprocess.CompletedProcess:
+    """A click command line run in this process, as a CompletedProcess (exit code, stdout, stderr).
+
+    For the error paths: a command that must stop early with a one-line message is checked
+    without a fresh interpreter importing torch (seconds per call). An exception that escapes
+    the command is appended to stderr as its traceback, so "Traceback" checks keep their meaning."""
+    import traceback
+
+    from click.testing import CliRunner
+
+    result = CliRunner().invoke(main, [str(a) for a in args], env=env, catch_exceptions=True)
+    stderr = result.stderr
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        stderr += "Traceback (most recent call last):\n" + "".join(traceback.format_exception(result.exception))
+    return subprocess.CompletedProcess(list(args), result.exit_code, result.stdout, stderr)
+
+
 def assets_mark(sub: str):
     """Tests on the shared CC0 assets: skipped on a machine without them, but never in CI,
     where `../shared` is always beside the clone and a missing folder is a failure to see."""

@@ -14,9 +14,10 @@ import torch
 from scipy import linalg
 
 from eval.decomposition import normal_angles, scale_invariant_l1, score_predictions, score_sample
+from eval.report import build_report
 from eval.fid import InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features
 
-from .conftest import ROOT
+from .conftest import ROOT, invoke_here
 from .train_helpers import TINY, tiny_intrinsics, tiny_photos
 
 
@@ -62,6 +63,10 @@ def test_kid_matches_the_unbiased_mmd_formula_and_is_about_zero_for_identical_se
     a, b = rng.normal(size=(60, 8)), rng.normal(0.5, 1.0, size=(60, 8))
     kid, std = kid_from_features(a, b, subsets=3, subset_size=1000)  # subsets hold all 60: each equals the full MMD
     assert kid == pytest.approx(_mmd_unbiased(a, b), rel=1e-9) and std == pytest.approx(0, abs=1e-12)
+    from torchmetrics.image.kid import poly_mmd  # the library formula the report's KID writes out
+
+    ta, tb = torch.from_numpy(a), torch.from_numpy(b)
+    assert kid == pytest.approx(float(poly_mmd(ta, tb, degree=3, gamma=None, coef=1.0)), rel=1e-9)
     big_a, big_b = rng.normal(size=(400, 8)), rng.normal(0.5, 1.0, size=(400, 8))
     different, _ = kid_from_features(big_a, big_b, subsets=5)
     same, _ = kid_from_features(big_a, big_a, subsets=5)
@@ -105,6 +110,11 @@ def test_decomposition_metrics_on_hand_made_cases():
 
 
 def _cli(*args, check=True):
+    """`iae-eval ARGS` in a fresh process; an expected failure (check=False) in this one."""
+    if not check:
+        from eval.cli import main
+
+        return invoke_here(main, *args)
     proc = subprocess.run([sys.executable, "-m", "eval.cli", *args], cwd=ROOT, capture_output=True, text=True)
     if check and proc.returncode:
         raise AssertionError(proc.stdout + proc.stderr)
@@ -310,16 +320,19 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     first_fit = ["--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), *TINY]
     subprocess.run(fit + first_fit + ["--max-steps", "3"], cwd=ROOT, check=True, capture_output=True)
     out = tmp_path / "out"
-    args = ["--real", str(photos), "--intrinsics", str(unseen), "--out", str(out), "--quiet"]
-    _cli("report", str(run), "--data", str(pbr_a), *args)
+
+    def report(data):  # in this process: the cache logic is under test, not the command line
+        build_report([run], data, photos, out, unseen, progress=False)
+
+    report(pbr_a)
     first = json.loads((out / "results.json").read_text())["runs"][0]
     subprocess.run(fit + ["--max-steps", "6"], cwd=ROOT, check=True, capture_output=True)
-    _cli("report", str(run), "--data", str(pbr_a), *args)
+    report(pbr_a)
     second = json.loads((out / "results.json").read_text())["runs"][0]
     assert (first["step"], second["step"]) == (3, 6)
     preds = out / "runs" / "00_run" / "predictions"
     assert json.loads((preds / "dataset.json").read_text())["cache_key"]["step"] == 6
-    _cli("report", str(run), "--data", str(pbr_b), *args)
+    report(pbr_b)
     third = json.loads((out / "results.json").read_text())["runs"][0]
     assert third["dec"]["samples"] == 3 and third["dec"]["data"] == str(pbr_b.resolve())
     # retrained in place to the same step with another seed -> the cache is keyed by the
@@ -328,7 +341,7 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     shutil.rmtree(run)
     subprocess.run(fit + first_fit + ["--max-steps", "6", "--set", "run.seed=2"], cwd=ROOT, check=True,
                    capture_output=True)
-    _cli("report", str(run), "--data", str(pbr_b), *args)
+    report(pbr_b)
     key_after = json.loads((preds / "dataset.json").read_text())["cache_key"]
     fourth = json.loads((out / "results.json").read_text())["runs"][0]
     assert key_before["step"] == key_after["step"] == 6

@@ -21,6 +21,7 @@ from train.probe import ProbeSet, decomposition_scores, evaluate_probe, input_se
 from train.colour import srgb_decode, srgb_encode
 from train.sanity import LIGHT, shade_network
 
+from .conftest import invoke_here
 from .train_helpers import TINY, tiny_intrinsics, tiny_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -303,9 +304,10 @@ def test_fit_probe_logs_curves_and_diagnose_reads_the_run(data, tmp_path):
     assert terms["G/normal_length"]["H_A"]["grad_norm"] == 0 and terms["G/normal_length"]["H_F"]["grad_norm"] == 0
     assert terms["G/ren_cycle"]["H_N"]["grad_norm"] > 0
 
-    def diagnose(*args):
-        return subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--batch", "2", *args],
-                              capture_output=True, text=True, cwd=ROOT)
+    def diagnose(*args):  # the error paths, in this process
+        from train.cli import main
+
+        return invoke_here(main, "diagnose", "--run", run, "--batch", "2", *args)
 
     other = tmp_path / "other_run" / "checkpoints"  # another run's checkpoint under this run's name: refused
     shutil.copytree(run / "checkpoints", other)
@@ -332,8 +334,9 @@ def test_diagnose_of_a_baseline_is_a_one_line_error(data, tmp_path):
                 "--run-dir", str(run), "--max-steps", "1", "--quiet",
                 *[a for s in tiny_overrides("cyclegan") for a in ("--set", s)])
     assert proc.returncode == 0, proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "train.cli", "diagnose", "--run", str(run), "--probe", str(data["pbr"])],
-                          capture_output=True, text=True, cwd=ROOT)
+    from train.cli import main
+
+    proc = invoke_here(main, "diagnose", "--run", run, "--probe", data["pbr"])
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr and "model.kind = 'iae'" in proc.stderr
 

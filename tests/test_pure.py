@@ -138,6 +138,16 @@ def test_network_space_conversions():
         to_network("depth", n)
 
 
+def test_srgb_transfer_functions_equal_colour_science_bit_for_bit():
+    import colour
+
+    knees = [0.0031308, 0.0031308 * 12.92, 0.04045]
+    x = np.concatenate([np.linspace(-0.5, 1.5, 20001), np.nextafter(knees, 0), knees, np.nextafter(knees, 1)])
+    assert np.array_equal(srgb_to_linear(x), colour.models.eotf_sRGB(x))
+    assert np.array_equal(linear_to_srgb(x), colour.models.eotf_inverse_sRGB(np.clip(x, 0, 1)))
+    assert np.array_equal(srgb_to_linear(0.2), colour.models.eotf_sRGB(0.2))  # scalars too
+
+
 def test_exr_round_trip_is_half_float_and_atomic(tmp_path):
     layers = {"normal": np.random.default_rng(0).uniform(-1, 1, (6, 10, 3)), "mask": np.ones((6, 10, 1))}
     p = tmp_path / "s.exr"

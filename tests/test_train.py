@@ -19,7 +19,7 @@ from train.loop import discriminator_step, fit, generator_step
 from train.model import IntrinsicAutoencoder, build_model
 from train.networks import Decomposer, LocalEnhancer, MultiscaleDiscriminator, ResnetGenerator
 
-from .conftest import ROOT
+from .conftest import ROOT, invoke_here
 from .train_helpers import TINY, tiny_intrinsics, tiny_overrides, tiny_photos
 
 
@@ -190,6 +190,11 @@ def test_photos_of_another_aspect_are_covered_then_centre_cropped(tmp_path):
 
 
 def _run(*args, env=None, check=True):
+    """`iae-train ARGS` in a fresh process; an expected failure (check=False) in this one."""
+    if not check:
+        from train.cli import main
+
+        return invoke_here(main, *args, env=env)
     proc = subprocess.run([sys.executable, "-m", "train.cli", *args], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, **(env or {})})
     if check and proc.returncode:
