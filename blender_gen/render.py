@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+import time
+import weakref
 from dataclasses import replace
 from pathlib import Path
 
@@ -37,6 +39,40 @@ def _scratch_dir() -> str:
     return "/dev/shm" if os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()
 
 
+SCRATCH_PREFIX = "iae_render_"
+STALE_SCRATCH_S = 600  # a live renderer rewrites its scratch file with every sample
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+def sweep_stale_scratch(directory: str) -> int:
+    """Delete scratch files that killed renderers left behind (in /dev/shm they hold RAM until a
+    reboot): those whose process is gone and that nothing wrote for STALE_SCRATCH_S. Returns how many."""
+    removed = 0
+    now = time.time()
+    for entry in os.scandir(directory):
+        if not (entry.name.startswith(SCRATCH_PREFIX) and entry.name.endswith(".exr")):
+            continue
+        pid = entry.name[len(SCRATCH_PREFIX):].split("_", 1)[0]
+        try:
+            if not pid.isdigit() or now - entry.stat().st_mtime < STALE_SCRATCH_S:
+                continue
+            os.kill(int(pid), 0)  # raises if no such process
+            continue
+        except ProcessLookupError:
+            pass
+        except OSError:  # alive under another user (PermissionError) or gone already (stat)
+            continue
+        _unlink(entry.path)
+        removed += 1
+    return removed
+
+
 class SampleRenderer:
     """One per process at a time: a new one resets Blender and retires the one before it."""
 
@@ -62,8 +98,12 @@ class SampleRenderer:
         self._cars: dict[str, S.CarInstance] = {}
         self._visible: str | None = None
         self._orbit_focal: float | None = None
-        fd, self._scratch = tempfile.mkstemp(prefix="iae_render_", suffix=".exr", dir=_scratch_dir())
+        scratch_dir = _scratch_dir()
+        sweep_stale_scratch(scratch_dir)
+        # named by process, so a later renderer can tell a dead one's leftover from a live one's
+        fd, self._scratch = tempfile.mkstemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}_", suffix=".exr", dir=scratch_dir)
         os.close(fd)
+        self._finalizer = weakref.finalize(self, _unlink, self._scratch)  # also at interpreter exit
         self.scene.render.filepath = self._scratch
 
     physical = False  # the PBR renderer shades with Principled BSDFs
@@ -338,8 +378,5 @@ class SampleRenderer:
         """Intrinsics sets write no per-sample previews (`iae-gen inspect` makes a grid)."""
 
     def close(self) -> None:
-        try:
-            os.unlink(self._scratch)
-        except OSError:
-            pass
+        self._finalizer()
 

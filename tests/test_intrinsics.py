@@ -356,6 +356,7 @@ for car in r.cars.values():
     for o in car.objects.values():
         o.data.shade_flat()
 res['flat'] = steps()
+res['scratch'] = r._scratch  # never closed: the interpreter's exit must remove it
 print(json.dumps(res))
 """
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
@@ -366,3 +367,21 @@ print(json.dumps(res))
     assert same < 0.35 and p99 < 20.0, res
     flat_same, flat_p99, _ = res["flat"]
     assert flat_same > 0.5 or flat_p99 > 25.0, f"the check must reject faceted normals: {res}"
+    assert not Path(res["scratch"]).exists(), "a renderer's scratch file outlived its process"
+
+
+def test_scratch_files_of_killed_renderers_are_swept_and_live_ones_kept(renderer, tmp_path):
+    from blender_gen.render import SCRATCH_PREFIX, STALE_SCRATCH_S, sweep_stale_scratch
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    names = {"dead, old": f"{SCRATCH_PREFIX}{dead}_a.exr", "dead, just written": f"{SCRATCH_PREFIX}{dead}_b.exr",
+             "live, old": f"{SCRATCH_PREFIX}{os.getpid()}_c.exr", "not ours": f"{dead}_d.exr"}
+    old = time.time() - STALE_SCRATCH_S - 60
+    for what, name in names.items():
+        (tmp_path / name).write_bytes(b"x")
+        if what != "dead, just written":
+            os.utime(tmp_path / name, (old, old))
+    assert sweep_stale_scratch(str(tmp_path)) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(v for k, v in names.items() if k != "dead, old")
+    assert Path(renderer._scratch).name.startswith(f"{SCRATCH_PREFIX}{os.getpid()}_")
