@@ -140,6 +140,34 @@ def test_shading_terms_are_logged_and_the_shader_is_chosen_by_config():
         load_config("cpu-small", ["run.ema_decay=1.5"])
 
 
+def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_whole_maps():
+    stacks, _ = _blobs(2)
+    for pool in (1, 2):
+        torch.manual_seed(0)
+        model = build_model(load_config("cpu-small", tiny_overrides() + [f"loss.adv_m_pool={pool}"]))
+        seen = []
+        hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].shape[-2:]))
+        out = model.forward_all(stacks, shade_network(stacks))
+        model.discriminator_loss(out)
+        model.generator_loss(out)
+        hook.remove()
+        assert seen and all(tuple(s) == (stacks.shape[-2] // pool, stacks.shape[-1] // pool) for s in seen), (pool, seen)
+    assert load_config("paper").loss.adv_m_pool == 1
+    with pytest.raises(ConfigError, match="loss.adv_m_pool"):
+        load_config("cpu-small", ["loss.adv_m_pool=0"])
+    # on the car only: every stack D_M sees is zero where its own normals are short (no object)
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_on=car"]))
+    seen = []
+    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach()))
+    model.discriminator_loss(model.forward_all(stacks, shade_network(stacks)))
+    hook.remove()
+    (batch,) = seen
+    inside = batch[:, :3].norm(dim=1, keepdim=True) > 0.5
+    assert inside.any() and (~inside).any() and batch.masked_select(~inside.expand_as(batch)).abs().max() == 0
+    assert torch.equal(batch[: len(stacks)], stacks * (stacks[:, :3].norm(dim=1, keepdim=True) > 0.5))  # the real ones
+    assert load_config("paper").loss.adv_m_on == "all"
+
+
 def test_the_per_pixel_prior_knows_the_frame_and_beats_the_constant_on_its_own_data():
     stacks, masks = _blobs(6, seed=3)
     prior = pixel_prior(stacks)

@@ -132,6 +132,14 @@ class LossConfig:
     # renders alone) passes S1 on three seeds (23.4-24.0 deg against 29.1-29.4) but loses 0.3 / 2.3 deg
     # on the 32x64 protocol (docs/normals_from_shading.md, "Without D_M"): 0.1 stays
     w_adv_m: float = 0.1
+    # Not in the paper: D_M judges maps average-pooled by this factor (real and fakes alike), so it
+    # can still judge silhouettes and broad shapes but gains nothing from pixel-level texture that
+    # H cannot read from the image and would otherwise invent (speckle). 1 = the paper.
+    adv_m_pool: int = 1
+    # Not in the paper: where D_M judges the maps. "all" (the paper) or "car": real and fake stacks
+    # are zeroed outside their own object mask (normals longer than 0.5), so D_M still sees each
+    # silhouette but not what the reflection map draws behind the car.
+    adv_m_on: str = "all"
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
     # translations (a weighted mean with gan_reduce "mean"); the discriminators still learn
@@ -376,6 +384,7 @@ def validate(cfg: Config) -> Config:
     _choice("loss.gan", lo.gan, ("bce", "lsgan"))
     _choice("loss.gan_reduce", lo.gan_reduce, ("sum", "mean"))
     _choice("loss.normal_length_on", lo.normal_length_on, ("threshold", "car"))
+    _choice("loss.adv_m_on", lo.adv_m_on, ("all", "car"))
     _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
@@ -398,7 +407,7 @@ def validate(cfg: Config) -> Config:
               "model.d_scales", "cyclegan.ngf", "cyclegan.ndf", "cyclegan.d_layers", "munit.dim", "munit.style_dim",
               "munit.mlp_dim", "munit.d_ndf", "munit.d_layers", "munit.d_scales", "optim.max_steps",
               "optim.step_size", "run.log_every", "run.grid_every", "run.checkpoint_every", "run.keep_checkpoints",
-              "run.grid_samples", "run.probe_samples")
+              "run.grid_samples", "run.probe_samples", "loss.adv_m_pool")
     _at_least(cfg, 0, "run.seed", "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",

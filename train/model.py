@@ -162,6 +162,16 @@ class IntrinsicAutoencoder(nn.Module):
     def _disc(self, name: str) -> nn.Module:
         return self.D_I if name == "D_I" else self.D_M
 
+    def _judge(self, name: str, x: torch.Tensor) -> list[torch.Tensor]:
+        """A discriminator's logits on x; D_M sees maps masked to the car (loss.adv_m_on) and pooled
+        by loss.adv_m_pool."""
+        if name == "D_M" and self.loss_cfg.adv_m_on == "car":
+            x = x * object_mask(x.detach())
+        k = self.loss_cfg.adv_m_pool
+        if name == "D_M" and k > 1:
+            x = nn.functional.avg_pool2d(x, k)
+        return self._disc(name)(x)
+
     def loss_terms(self, out: dict[str, torch.Tensor]) -> dict[str, tuple[float, torch.Tensor]]:
         """Every generator loss term as (weight, unweighted value); Eq. 7 is their weighted sum.
         `iae-train diagnose` measures each term's gradient from this."""
@@ -189,7 +199,7 @@ class IntrinsicAutoencoder(nn.Module):
                                                                      object_mask(h.detach()), gain=self._gain()))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
-            logits = self._disc(dname)(torch.cat([out[f] for f in fakes]))
+            logits = self._judge(dname, torch.cat([out[f] for f in fakes]))
             chunks = [torch.chunk(l, len(fakes)) for l in logits]
             rel = self._adv_weights(fakes)
             norm = sum(rel) if mean else 1.0
@@ -234,7 +244,7 @@ class IntrinsicAutoencoder(nn.Module):
         total = out["M_s"].new_zeros((), dtype=torch.float32)
         for dname, (real, fakes) in self.discriminator_inputs(out).items():
             batch = torch.cat([real] + [out[f].detach() for f in fakes])
-            chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._disc(dname)(batch)]
+            chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._judge(dname, batch)]
             loss_real = gan_loss([c[0] for c in chunks], True, lc.gan, lc.gan_reduce)
             loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan, lc.gan_reduce)
                             for k in range(len(fakes))) / len(fakes)
