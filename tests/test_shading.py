@@ -166,6 +166,14 @@ def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_w
     assert inside.any() and (~inside).any() and batch.masked_select(~inside.expand_as(batch)).abs().max() == 0
     assert torch.equal(batch[: len(stacks)], stacks * (stacks[:, :3].norm(dim=1, keepdim=True) > 0.5))  # the real ones
     assert load_config("paper").loss.adv_m_on == "all"
+    # the reflection map only: normals and albedo reach D_M as zeros, the reflection map as it is
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_on=reflection"]))
+    seen = []
+    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach()))
+    model.discriminator_loss(model.forward_all(stacks, shade_network(stacks)))
+    hook.remove()
+    (batch,) = seen
+    assert batch[:, :6].abs().max() == 0 and torch.equal(batch[: len(stacks), 6:], stacks[:, 6:])
 
 
 def test_the_per_pixel_prior_knows_the_frame_and_beats_the_constant_on_its_own_data():

@@ -136,9 +136,10 @@ class LossConfig:
     # can still judge silhouettes and broad shapes but gains nothing from pixel-level texture that
     # H cannot read from the image and would otherwise invent (speckle). 1 = the paper.
     adv_m_pool: int = 1
-    # Not in the paper: where D_M judges the maps. "all" (the paper) or "car": real and fake stacks
+    # Not in the paper: where D_M judges the maps. "all" (the paper); "car": real and fake stacks
     # are zeroed outside their own object mask (normals longer than 0.5), so D_M still sees each
-    # silhouette but not what the reflection map draws behind the car.
+    # silhouette but not what the reflection map draws behind the car; "reflection": D_M sees the
+    # reflection map only (normals and albedo zeroed), so H's normals learn from R's renders alone.
     adv_m_on: str = "all"
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
@@ -384,7 +385,7 @@ def validate(cfg: Config) -> Config:
     _choice("loss.gan", lo.gan, ("bce", "lsgan"))
     _choice("loss.gan_reduce", lo.gan_reduce, ("sum", "mean"))
     _choice("loss.normal_length_on", lo.normal_length_on, ("threshold", "car"))
-    _choice("loss.adv_m_on", lo.adv_m_on, ("all", "car"))
+    _choice("loss.adv_m_on", lo.adv_m_on, ("all", "car", "reflection"))
     _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))

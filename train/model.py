@@ -167,6 +167,8 @@ class IntrinsicAutoencoder(nn.Module):
         by loss.adv_m_pool."""
         if name == "D_M" and self.loss_cfg.adv_m_on == "car":
             x = x * object_mask(x.detach())
+        elif name == "D_M" and self.loss_cfg.adv_m_on == "reflection":
+            x = torch.cat([torch.zeros_like(x[:, :6]), x[:, 6:]], dim=1)
         k = self.loss_cfg.adv_m_pool
         if name == "D_M" and k > 1:
             x = nn.functional.avg_pool2d(x, k)
