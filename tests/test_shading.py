@@ -140,6 +140,17 @@ def test_shading_terms_are_logged_and_the_shader_is_chosen_by_config():
         load_config("cpu-small", ["run.ema_decay=1.5"])
 
 
+def _d_m_input(stacks: torch.Tensor, setting: str) -> torch.Tensor:
+    """The one batch D_M judges in a discriminator step of a tiny model with `setting`."""
+    model = build_model(load_config("cpu-small", tiny_overrides() + [setting]))
+    seen = []
+    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach()))
+    model.discriminator_loss(model.forward_all(stacks, shade_network(stacks)))
+    hook.remove()
+    (batch,) = seen
+    return batch
+
+
 def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_whole_maps():
     stacks, _ = _blobs(2)
     for pool in (1, 2):
@@ -156,23 +167,13 @@ def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_w
     with pytest.raises(ConfigError, match="loss.adv_m_pool"):
         load_config("cpu-small", ["loss.adv_m_pool=0"])
     # on the car only: every stack D_M sees is zero where its own normals are short (no object)
-    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_on=car"]))
-    seen = []
-    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach()))
-    model.discriminator_loss(model.forward_all(stacks, shade_network(stacks)))
-    hook.remove()
-    (batch,) = seen
+    batch = _d_m_input(stacks, "loss.adv_m_on=car")
     inside = batch[:, :3].norm(dim=1, keepdim=True) > 0.5
     assert inside.any() and (~inside).any() and batch.masked_select(~inside.expand_as(batch)).abs().max() == 0
     assert torch.equal(batch[: len(stacks)], stacks * (stacks[:, :3].norm(dim=1, keepdim=True) > 0.5))  # the real ones
     assert load_config("paper").loss.adv_m_on == "all"
     # the reflection map only: normals and albedo reach D_M as zeros, the reflection map as it is
-    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_on=reflection"]))
-    seen = []
-    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach()))
-    model.discriminator_loss(model.forward_all(stacks, shade_network(stacks)))
-    hook.remove()
-    (batch,) = seen
+    batch = _d_m_input(stacks, "loss.adv_m_on=reflection")
     assert batch[:, :6].abs().max() == 0 and torch.equal(batch[: len(stacks), 6:], stacks[:, 6:])
 
 
