@@ -18,7 +18,7 @@ from eval.report import build_report
 from eval.fid import InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features
 
 from .conftest import ROOT, invoke_here
-from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+from .train_helpers import tiny_intrinsics, tiny_overrides, tiny_photos
 
 
 def test_fid_matches_scipy_sqrtm_and_is_zero_for_identical_sets():
@@ -184,12 +184,14 @@ def report(tmp_path_factory):
     intr, photos = tiny_intrinsics(root / "intr"), tiny_photos(root / "photos")
     pbr = tiny_intrinsics(root / "pbr", n=3, seed=5, kind="pbr")
     unseen = tiny_intrinsics(root / "unseen", n=3, seed=9)
+    from train.config import load_config
+    from train.loop import fit
+
     runs = []
-    for name, extra in (("full", []), ("noshared", ["--set", "loss.shared_discriminator=false"])):
-        run = root / name
-        subprocess.run([sys.executable, "-m", "train.cli", "fit", "--config", "cpu-small", "--intrinsics", str(intr),
-                        "--real", str(photos), "--run-dir", str(run), "--max-steps", "3", "--quiet", *TINY, *extra],
-                       cwd=ROOT, check=True, capture_output=True)
+    for name, extra in (("full", []), ("noshared", ["loss.shared_discriminator=false"])):
+        run = root / name  # trained in this process; the report command is the subject
+        fit(run, load_config("cpu-small", tiny_overrides() + extra), str(intr), str(photos), max_steps=3,
+            progress=False)
         runs.append(str(run))
     out = root / "out"
     proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen),
@@ -315,10 +317,16 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     pbr_a = tiny_intrinsics(tmp_path / "pbr_a", n=2, seed=5, kind="pbr")
     pbr_b = tiny_intrinsics(tmp_path / "pbr_b", n=3, seed=6, kind="pbr")
     unseen = tiny_intrinsics(tmp_path / "unseen", n=2, seed=9)
+    from train.config import load_config
+    from train.loop import fit
+
     run = tmp_path / "run"
-    fit = [sys.executable, "-m", "train.cli", "fit", "--run-dir", str(run), "--quiet"]
-    first_fit = ["--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), *TINY]
-    subprocess.run(fit + first_fit + ["--max-steps", "3"], cwd=ROOT, check=True, capture_output=True)
+
+    def train(steps: int, *extra: str) -> None:  # in this process: the report's cache is the subject
+        fit(run, load_config("cpu-small", tiny_overrides() + list(extra)), str(intr), str(photos), max_steps=steps,
+            progress=False)
+
+    train(3)
     out = tmp_path / "out"
 
     def report(data):  # in this process: the cache logic is under test, not the command line
@@ -326,7 +334,7 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
 
     report(pbr_a)
     first = json.loads((out / "results.json").read_text())["runs"][0]
-    subprocess.run(fit + ["--max-steps", "6"], cwd=ROOT, check=True, capture_output=True)
+    fit(run, max_steps=6, progress=False)  # resumed
     report(pbr_a)
     second = json.loads((out / "results.json").read_text())["runs"][0]
     assert (first["step"], second["step"]) == (3, 6)
@@ -339,8 +347,7 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     # checkpoint's content and the config, not by path and step
     key_before = json.loads((preds / "dataset.json").read_text())["cache_key"]
     shutil.rmtree(run)
-    subprocess.run(fit + first_fit + ["--max-steps", "6", "--set", "run.seed=2"], cwd=ROOT, check=True,
-                   capture_output=True)
+    train(6, "run.seed=2")
     report(pbr_b)
     key_after = json.loads((preds / "dataset.json").read_text())["cache_key"]
     fourth = json.loads((out / "results.json").read_text())["runs"][0]

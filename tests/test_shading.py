@@ -19,7 +19,7 @@ from train.probe import ProbeSet, evaluate_probe, high_frequency, pixel_prior, s
 from train.sanity import shade_network
 from train.shading import fit_shading, render_sh, sh_basis, shading_loss
 
-from .train_helpers import TINY, tiny_intrinsics, tiny_overrides
+from .train_helpers import tiny_intrinsics, tiny_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -177,6 +177,38 @@ def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_w
     assert batch[:, :6].abs().max() == 0 and torch.equal(batch[: len(stacks), 6:], stacks[:, 6:])
 
 
+def test_r1_penalty_on_d_m_is_the_squared_gradient_at_the_real_maps_and_smooths_d_m():
+    stacks, _ = _blobs(2)
+    torch.manual_seed(0)
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.r1_m=4"]))
+    out = model.forward_all(stacks, shade_network(stacks))
+    total, logs = model.discriminator_loss(out)
+    # by hand: the gradient of D_M's summed logits (both scales) at M_s
+    x = stacks.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(sum(l.sum() for l in model.D_M(x)), x)
+    expected = float(g.pow(2).flatten(1).sum(1).mean())
+    assert logs["D/D_M_r1"] == pytest.approx(expected, rel=1e-4) and expected > 0
+    model.loss_cfg.r1_m = 0.0
+    plain, plain_logs = model.discriminator_loss(out)
+    assert "D/D_M_r1" not in plain_logs
+    assert float(total) == pytest.approx(float(plain) + 0.5 * 4 * expected, rel=1e-4)
+    # a few D steps on the penalty shrink D_M's gradient at the real maps
+    model.loss_cfg.r1_m = 4.0
+    opt = torch.optim.Adam(model.D_M.parameters(), lr=1e-3)
+    first = last = None
+    for _ in range(8):
+        opt.zero_grad()
+        loss, logs = model.discriminator_loss(out)
+        loss.backward()
+        opt.step()
+        first = logs["D/D_M_r1"] if first is None else first
+        last = logs["D/D_M_r1"]
+    assert last < 0.5 * first, (first, last)
+    assert load_config("paper").loss.r1_m == 0 and load_config("cpu-small").loss.r1_m == 0
+    with pytest.raises(ConfigError, match="loss.r1_m"):
+        load_config("cpu-small", ["loss.r1_m=-1"])
+
+
 def test_the_per_pixel_prior_knows_the_frame_and_beats_the_constant_on_its_own_data():
     stacks, masks = _blobs(6, seed=3)
     prior = pixel_prior(stacks)
@@ -232,11 +264,15 @@ def _fit(args, cwd=ROOT):
 def test_moving_average_is_probed_saved_and_resumed_exactly(tmp_path):
     intr = tiny_intrinsics(tmp_path / "intr", n=4)
     pbr = tiny_intrinsics(tmp_path / "pbr", n=4, seed=5, kind="pbr")
-    common = ["fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(pbr), "--probe", str(pbr),
-              "--quiet", *TINY, "--set", "run.probe_every=3", "--set", "model.renderer=shader",
-              "--set", "loss.w_shading_ren=1", "--set", "loss.w_shading_dec=1"]
-    _fit([*common, "--run-dir", str(tmp_path / "whole"), "--max-steps", "6"])
-    _fit([*common, "--run-dir", str(tmp_path / "parts"), "--max-steps", "3"])
+    from train.loop import fit
+
+    def cfg():
+        return load_config("cpu-small", tiny_overrides() + ["run.probe_every=3", "model.renderer=shader",
+                                                           "loss.w_shading_ren=1", "loss.w_shading_dec=1"])
+
+    # the uninterrupted run and the first half here, the resume from the command line in a fresh process
+    fit(tmp_path / "whole", cfg(), str(intr), str(pbr), max_steps=6, progress=False, probe=str(pbr))
+    fit(tmp_path / "parts", cfg(), str(intr), str(pbr), max_steps=3, progress=False, probe=str(pbr))
     _fit(["fit", "--run-dir", str(tmp_path / "parts"), "--max-steps", "6", "--quiet"])
     rows = {}
     for name in ("whole", "parts"):

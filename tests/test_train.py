@@ -211,8 +211,7 @@ def test_run_folder_checkpoint_round_trip_and_exact_resume(data, tmp_path):
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     _run("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(whole),
          "--max-steps", "6", "--quiet", *TINY)
-    _run("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(parts),
-         "--max-steps", "4", "--quiet", *TINY)
+    fit(parts, load_config("cpu-small", tiny_overrides()), str(intr), str(photos), max_steps=4, progress=False)
     # a run stopped after its step-3 checkpoint: stats logged after it are dropped on resume
     _run("fit", "--run-dir", str(parts), "--max-steps", "6", "--quiet")
     a, b = _stats(whole), _stats(parts)

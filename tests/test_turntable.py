@@ -13,9 +13,9 @@ import pytest
 from blender_gen.dataset import open_dataset
 from eval.flicker import frame_differences, temporal_error
 
-from .conftest import ROOT, run_gen
+from .conftest import ROOT, invoke_here, run_gen
 from .test_train import _run as run_train
-from .train_helpers import TINY, tiny_intrinsics, tiny_photos
+from .train_helpers import tiny_intrinsics, tiny_overrides, tiny_photos
 
 FRAMES = 6
 
@@ -102,11 +102,21 @@ def test_frame_differences_on_hand_computed_frames():
     assert temporal_error(still, frames, masks)["whole_frame"] == pytest.approx(d["whole_frame"])
 
 
+def eval_here(*args) -> subprocess.CompletedProcess:
+    """`iae-eval ARGS` that must fail with a one-line error, in this process."""
+    from eval.cli import main
+
+    return invoke_here(main, *args)
+
+
 @pytest.mark.blender
 def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_path):
-    run = tmp_path / "run"
-    run_train("fit", "--config", "cpu-small", "--intrinsics", str(tiny_intrinsics(tmp_path / "blobs")),
-              "--real", str(tiny_photos(tmp_path / "photos")), "--run-dir", str(run), "--max-steps", "2", "--quiet", *TINY)
+    from train.config import load_config
+    from train.loop import fit
+
+    run = tmp_path / "run"  # trained in this process: the commands below are the subject
+    fit(run, load_config("cpu-small", tiny_overrides()), str(tiny_intrinsics(tmp_path / "blobs")),
+        str(tiny_photos(tmp_path / "photos")), max_steps=2, progress=False)
     video = tmp_path / "R.mp4"
     run_train("render", "--run", str(run), "--intrinsics", str(paths / "pbr"), "--out", str(tmp_path / "frames"),
               "--video", str(video), "--side-by-side", "--quiet")
@@ -157,15 +167,13 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
         r["sha256"] = rows[0]["sha256"]
     (still / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     for folder, message in ((not_a_path, "not a camera path"), (still, "do not change along the path")):
-        bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(folder)],
-                             cwd=ROOT, capture_output=True, text=True)
+        bad = eval_here("flicker", "--run", run, "--path", folder)
         assert bad.returncode == 1 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
     # --intrinsics: R's input from another set of the same path; it must be that path and the
     # background the run was trained on (this run: black; the intrinsics turntable: environment)
     for given, message in ((paths / "intr", "trained on intrinsics with the 'black' background"),
                            (not_a_path, "not the camera path of --path")):
-        bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path",
-                              str(paths / "pbr"), "--intrinsics", str(given)], cwd=ROOT, capture_output=True, text=True)
+        bad = eval_here("flicker", "--run", run, "--path", paths / "pbr", "--intrinsics", given)
         assert bad.returncode == 1 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
     again = tmp_path / "again.json"
     subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(paths / "pbr"),
@@ -177,8 +185,7 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     rows = [json.loads(line) for line in (gap / "manifest.jsonl").read_text().splitlines()]
     (gap / rows[2]["file"]).unlink()
     (gap / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for k, r in enumerate(rows) if k != 2))
-    bad = subprocess.run([sys.executable, "-m", "eval.cli", "flicker", "--run", str(run), "--path", str(gap)],
-                         cwd=ROOT, capture_output=True, text=True)
+    bad = eval_here("flicker", "--run", run, "--path", gap)
     assert bad.returncode == 1 and "--path" in bad.stderr and "frames 2 missing" in bad.stderr, bad.stderr
 
 
