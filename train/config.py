@@ -141,6 +141,10 @@ class LossConfig:
     # silhouette but not what the reflection map draws behind the car; "reflection": D_M sees the
     # reflection map only (normals and albedo zeroed), so H's normals learn from R's renders alone.
     adv_m_on: str = "all"
+    # Not in the paper: R1 gradient penalty on D_M (Mescheder et al. 2018), gamma / 2 x the squared
+    # gradient of its logits at the real maps M_s: a D_M whose verdict cannot turn on pixel-level
+    # perturbations of a real map, so it cannot ask H for texture the image does not show. 0 = the paper.
+    r1_m: float = 0.0
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
     # translations (a weighted mean with gan_reduce "mean"); the discriminators still learn
@@ -412,7 +416,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "run.seed", "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "loss.r1_m", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):

@@ -252,7 +252,18 @@ class IntrinsicAutoencoder(nn.Module):
                             for k in range(len(fakes))) / len(fakes)
             logs[f"D/{dname}_real"], logs[f"D/{dname}_fake"] = loss_real, loss_fake
             total = total + 0.5 * (loss_real + loss_fake)
+            if dname == "D_M" and lc.r1_m > 0:
+                logs["D/D_M_r1"] = self._r1(dname, real)
+                total = total + 0.5 * lc.r1_m * logs["D/D_M_r1"]
         return finish_logs(total, logs, "D")
+
+    def _r1(self, dname: str, real: torch.Tensor) -> torch.Tensor:
+        """Mean over the batch of the squared gradient of a discriminator's summed logits (every
+        scale) at the real inputs; its own forward pass, so the penalty's graph holds only D."""
+        x = real.detach().requires_grad_(True)
+        score = sum(l.float().sum() for l in self._judge(dname, x))
+        (grad,) = torch.autograd.grad(score, x, create_graph=True)
+        return grad.float().pow(2).flatten(1).sum(1).mean()
 
     def visuals(self, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return {k: out[k] for k in ("M_s", "fake_I", "rec_M", "I_r", "fake_M", "rec_I") if k in out}
