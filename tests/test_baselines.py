@@ -15,7 +15,7 @@ from train.loop import fit
 from train.model import build_model
 
 from .conftest import ROOT
-from .train_helpers import tiny_intrinsics, tiny_overrides, tiny_photos
+from .train_helpers import tiny_fit, tiny_intrinsics, tiny_overrides, tiny_photos
 
 
 def cfg_for(kind: str, *extra: str):
@@ -77,8 +77,8 @@ def test_checkpoint_and_exact_resume(kind, data, tmp_path):
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     # the uninterrupted run and the first half in this process; the resume, the subject, from the
     # command line in a fresh one (nothing but the run folder carries the state over)
-    fit(whole, cfg_for(kind), str(intr), str(photos), max_steps=4, progress=False)
-    fit(parts, cfg_for(kind), str(intr), str(photos), max_steps=3, progress=False)
+    tiny_fit(whole, intr, photos, 4, preset=kind)
+    tiny_fit(parts, intr, photos, 3, preset=kind)
     subprocess.run([sys.executable, "-m", "train.cli", "fit", "--run-dir", str(parts), "--max-steps", "4", "--quiet"],
                    cwd=ROOT, check=True)
     a = [json.loads(x) for x in (whole / "stats.jsonl").read_text().splitlines()]

@@ -18,7 +18,7 @@ from eval.report import build_report
 from eval.fid import InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features
 
 from .conftest import ROOT, invoke_here
-from .train_helpers import tiny_intrinsics, tiny_overrides, tiny_photos
+from .train_helpers import tiny_fit, tiny_intrinsics, tiny_photos
 
 
 def test_fid_matches_scipy_sqrtm_and_is_zero_for_identical_sets():
@@ -184,14 +184,10 @@ def report(tmp_path_factory):
     intr, photos = tiny_intrinsics(root / "intr"), tiny_photos(root / "photos")
     pbr = tiny_intrinsics(root / "pbr", n=3, seed=5, kind="pbr")
     unseen = tiny_intrinsics(root / "unseen", n=3, seed=9)
-    from train.config import load_config
-    from train.loop import fit
-
     runs = []
     for name, extra in (("full", []), ("noshared", ["loss.shared_discriminator=false"])):
         run = root / name  # trained in this process; the report command is the subject
-        fit(run, load_config("cpu-small", tiny_overrides() + extra), str(intr), str(photos), max_steps=3,
-            progress=False)
+        tiny_fit(run, intr, photos, 3, *extra)
         runs.append(str(run))
     out = root / "out"
     proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen),
@@ -317,16 +313,10 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     pbr_a = tiny_intrinsics(tmp_path / "pbr_a", n=2, seed=5, kind="pbr")
     pbr_b = tiny_intrinsics(tmp_path / "pbr_b", n=3, seed=6, kind="pbr")
     unseen = tiny_intrinsics(tmp_path / "unseen", n=2, seed=9)
-    from train.config import load_config
     from train.loop import fit
 
-    run = tmp_path / "run"
-
-    def train(steps: int, *extra: str) -> None:  # in this process: the report's cache is the subject
-        fit(run, load_config("cpu-small", tiny_overrides() + list(extra)), str(intr), str(photos), max_steps=steps,
-            progress=False)
-
-    train(3)
+    run = tmp_path / "run"  # trained in this process: the report's cache is the subject
+    tiny_fit(run, intr, photos, 3)
     out = tmp_path / "out"
 
     def report(data):  # in this process: the cache logic is under test, not the command line
@@ -347,7 +337,7 @@ def test_report_recomputes_predictions_after_more_training_other_data_or_retrain
     # checkpoint's content and the config, not by path and step
     key_before = json.loads((preds / "dataset.json").read_text())["cache_key"]
     shutil.rmtree(run)
-    train(6, "run.seed=2")
+    tiny_fit(run, intr, photos, 6, "run.seed=2")
     report(pbr_b)
     key_after = json.loads((preds / "dataset.json").read_text())["cache_key"]
     fourth = json.loads((out / "results.json").read_text())["runs"][0]

@@ -19,7 +19,7 @@ from train.probe import ProbeSet, evaluate_probe, high_frequency, pixel_prior, s
 from train.sanity import shade_network
 from train.shading import fit_shading, render_sh, sh_basis, shading_loss
 
-from .train_helpers import tiny_intrinsics, tiny_overrides
+from .train_helpers import tiny_fit, tiny_intrinsics, tiny_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -264,15 +264,10 @@ def _fit(args, cwd=ROOT):
 def test_moving_average_is_probed_saved_and_resumed_exactly(tmp_path):
     intr = tiny_intrinsics(tmp_path / "intr", n=4)
     pbr = tiny_intrinsics(tmp_path / "pbr", n=4, seed=5, kind="pbr")
-    from train.loop import fit
-
-    def cfg():
-        return load_config("cpu-small", tiny_overrides() + ["run.probe_every=3", "model.renderer=shader",
-                                                           "loss.w_shading_ren=1", "loss.w_shading_dec=1"])
-
+    sets = ["run.probe_every=3", "model.renderer=shader", "loss.w_shading_ren=1", "loss.w_shading_dec=1"]
     # the uninterrupted run and the first half here, the resume from the command line in a fresh process
-    fit(tmp_path / "whole", cfg(), str(intr), str(pbr), max_steps=6, progress=False, probe=str(pbr))
-    fit(tmp_path / "parts", cfg(), str(intr), str(pbr), max_steps=3, progress=False, probe=str(pbr))
+    tiny_fit(tmp_path / "whole", intr, pbr, 6, *sets, probe=pbr)
+    tiny_fit(tmp_path / "parts", intr, pbr, 3, *sets, probe=pbr)
     _fit(["fit", "--run-dir", str(tmp_path / "parts"), "--max-steps", "6", "--quiet"])
     rows = {}
     for name in ("whole", "parts"):

@@ -20,7 +20,7 @@ from train.model import IntrinsicAutoencoder, build_model
 from train.networks import Decomposer, LocalEnhancer, MultiscaleDiscriminator, ResnetGenerator
 
 from .conftest import ROOT, invoke_here
-from .train_helpers import TINY, tiny_intrinsics, tiny_overrides, tiny_photos
+from .train_helpers import TINY, tiny_fit, tiny_intrinsics, tiny_overrides, tiny_photos
 
 
 def tiny_cfg(**sets):
@@ -211,7 +211,7 @@ def test_run_folder_checkpoint_round_trip_and_exact_resume(data, tmp_path):
     whole, parts = tmp_path / "whole", tmp_path / "parts"
     _run("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(whole),
          "--max-steps", "6", "--quiet", *TINY)
-    fit(parts, load_config("cpu-small", tiny_overrides()), str(intr), str(photos), max_steps=4, progress=False)
+    tiny_fit(parts, intr, photos, 4)
     # a run stopped after its step-3 checkpoint: stats logged after it are dropped on resume
     _run("fit", "--run-dir", str(parts), "--max-steps", "6", "--quiet")
     a, b = _stats(whole), _stats(parts)

@@ -15,7 +15,7 @@ from eval.flicker import frame_differences, temporal_error
 
 from .conftest import ROOT, invoke_here, run_gen
 from .test_train import _run as run_train
-from .train_helpers import tiny_intrinsics, tiny_overrides, tiny_photos
+from .train_helpers import tiny_fit, tiny_intrinsics, tiny_photos
 
 FRAMES = 6
 
@@ -111,12 +111,8 @@ def eval_here(*args) -> subprocess.CompletedProcess:
 
 @pytest.mark.blender
 def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_path):
-    from train.config import load_config
-    from train.loop import fit
-
     run = tmp_path / "run"  # trained in this process: the commands below are the subject
-    fit(run, load_config("cpu-small", tiny_overrides()), str(tiny_intrinsics(tmp_path / "blobs")),
-        str(tiny_photos(tmp_path / "photos")), max_steps=2, progress=False)
+    tiny_fit(run, tiny_intrinsics(tmp_path / "blobs"), tiny_photos(tmp_path / "photos"), 2)
     video = tmp_path / "R.mp4"
     run_train("render", "--run", str(run), "--intrinsics", str(paths / "pbr"), "--out", str(tmp_path / "frames"),
               "--video", str(video), "--side-by-side", "--quiet")

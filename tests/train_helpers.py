@@ -74,3 +74,15 @@ def tiny_args(kind: str = "iae") -> list[str]:
 
 
 TINY = tiny_args("iae")
+
+
+def tiny_fit(run: Path, intrinsics: Path, real: Path, steps: int, *extra: str, preset: str = "cpu-small",
+             probe: Path | None = None) -> None:
+    """Train a tiny run in this process, for tests whose subject is what reads or resumes it (a
+    fresh process adds only start-up time there): `preset` with the tiny widths and `extra`."""
+    from train.config import load_config
+    from train.loop import fit
+
+    kind = "iae" if preset == "cpu-small" else preset
+    fit(run, load_config(preset, tiny_overrides(kind) + list(extra)), str(intrinsics), str(real), max_steps=steps,
+        progress=False, probe=str(probe) if probe else None)
