@@ -6,6 +6,10 @@ reproduces what the renderer's shader computes (tests compare the two).
 """
 from __future__ import annotations
 
+import hashlib
+import os
+from pathlib import Path
+
 import numpy as np
 
 PROCEDURAL_PREFIX = "procedural:"
@@ -132,6 +136,50 @@ def procedural_sky(variant: int, width: int = 1024, height: int = 512) -> np.nda
     ground = ground * (1.0 + 1.5 * max(np.sin(sun_el), 0.1))
     sky = np.where((elev < 0)[..., None], ground, sky)
     return sky.astype(np.float32)
+
+
+def sky_cache_dir() -> Path | None:
+    """Where built skies are kept between processes and runs: $IAE_CACHE_DIR (``none`` turns the
+    cache off), else $XDG_CACHE_HOME or ~/.cache, under intrinsic-autoencoders/skies."""
+    root = os.environ.get("IAE_CACHE_DIR")
+    if root is not None and root.strip().lower() in ("", "none", "off"):
+        return None
+    if root is None:
+        root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "intrinsic-autoencoders")
+    return Path(root) / "skies"
+
+
+# the cache key: this module's source, so a change to the sky (or the lookup) never reads old pixels
+_SOURCE_KEY = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
+
+
+def cached_procedural_sky(variant: int, width: int = 1024, height: int = 512) -> np.ndarray:
+    """`procedural_sky`, built once per machine rather than once per worker process (about 1 s
+    each, 8 per worker otherwise): the same array, bit for bit. A missing, unreadable or wrong-shaped
+    cache file is rebuilt; a cache that cannot be written is skipped."""
+    folder = sky_cache_dir()
+    path = folder / f"sky{variant}_{width}x{height}_{_SOURCE_KEY}.npy" if folder is not None else None
+    if path is not None:
+        try:
+            arr = np.load(path, allow_pickle=False)
+            if arr.shape == (height, width, 3) and arr.dtype == np.float32:
+                return arr
+        except (OSError, ValueError, EOFError):
+            pass
+    arr = procedural_sky(variant, width, height)
+    if path is not None:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with open(tmp, "wb") as fh:
+                np.save(fh, arr, allow_pickle=False)
+            os.replace(tmp, path)  # readers see the whole file or none
+        except OSError:
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+    return arr
 
 
 def view_rays(cam_to_world: np.ndarray, focal_px: float, height: int, width: int,

@@ -21,7 +21,7 @@ from . import scene as S
 from .camera import orbit_focal, orbit_pose, sample_camera
 from .cars import RandomCars, load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
-from .envmap import PROCEDURAL_PREFIX, background_lookup, procedural_sky
+from .envmap import PROCEDURAL_PREFIX, background_lookup, cached_procedural_sky
 from .materials import load_materials
 from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
@@ -163,7 +163,7 @@ class SampleRenderer:
         if img is None:
             if name.startswith(PROCEDURAL_PREFIX):
                 variant = int(name.rsplit("_", 1)[1])
-                img = S.image_from_array(name, procedural_sky(variant))
+                img = S.image_from_array(name, cached_procedural_sky(variant))
             else:
                 img = S.load_envmap_image(name)
             self._env_images[name] = img

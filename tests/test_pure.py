@@ -10,7 +10,8 @@ from blender_gen.camera import CameraRanges, euler_xyz_deg, look_at, project, sa
 from blender_gen.cars import CATEGORIES, PARTS, build_car, load_catalogue, load_part_materials, select_cars
 from blender_gen.conversions import from_network, linear_to_srgb, srgb_to_linear, to_network
 from blender_gen.dataset import read_exr, read_manifest, write_exr
-from blender_gen.envmap import direction_to_uv, procedural_sky, sample_equirect, uv_to_direction
+from blender_gen import envmap
+from blender_gen.envmap import cached_procedural_sky, direction_to_uv, procedural_sky, sample_equirect, uv_to_direction
 from blender_gen.materials import N_PAINTS, N_PART_MATERIALS, load_materials
 
 
@@ -125,6 +126,26 @@ def test_procedural_sky_is_hdr_and_deterministic():
     assert np.array_equal(a, b)
     assert a.max() > 50.0 and a.min() >= 0.0, "a sun far brighter than the sky"
     assert not np.array_equal(a, procedural_sky(4, 256, 128))
+
+
+def test_cached_sky_is_the_built_sky_bit_for_bit_and_a_broken_cache_file_is_rebuilt(tmp_path, monkeypatch):
+    monkeypatch.setenv("IAE_CACHE_DIR", str(tmp_path / "cache"))
+    built = procedural_sky(5, 64, 32)
+    first = cached_procedural_sky(5, 64, 32)  # builds and writes
+    (file,) = (tmp_path / "cache" / "skies").glob("sky5_64x32_*.npy")
+    assert np.array_equal(first, built) and first.dtype == np.float32
+    calls = []
+    monkeypatch.setattr(envmap, "procedural_sky", lambda *a: calls.append(a) or built)
+    assert np.array_equal(cached_procedural_sky(5, 64, 32), built) and not calls  # read, not rebuilt
+    file.write_bytes(file.read_bytes()[:100])  # a truncated file (a writer killed mid-way never leaves one)
+    assert np.array_equal(cached_procedural_sky(5, 64, 32), built) and len(calls) == 1
+    assert np.array_equal(np.load(file), built)  # rewritten whole
+    # no usable cache folder (a file in its place, or turned off): the sky is built every time
+    monkeypatch.setenv("IAE_CACHE_DIR", str(file))
+    assert np.array_equal(cached_procedural_sky(5, 64, 32), built) and len(calls) == 2
+    monkeypatch.setenv("IAE_CACHE_DIR", "none")
+    assert envmap.sky_cache_dir() is None and np.array_equal(cached_procedural_sky(5, 64, 32), built)
+    assert not list((tmp_path / "cache" / "skies").glob(".*.tmp"))
 
 
 def test_network_space_conversions():
