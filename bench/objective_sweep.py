@@ -188,7 +188,7 @@ def run(args) -> None:
         m_s = draw(t["YR"] if paired else t["MS"], im, f_m, True)
         i_r = draw(t["XR"], ir, f_i, False)
         model.train()
-        o, g_logs = generator_step(model, opts["G"], g_params, m_s, i_r)
+        o, g_logs = generator_step(model, opts["G"], g_params, m_s, i_r, step=step - 1)
         d_logs = discriminator_step(model, opts["D"], d_params, o) if "D" in opts else {}
         for s in scheds.values():
             s.step()

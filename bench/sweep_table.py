@@ -1,6 +1,6 @@
 """Table and curves of objective sweeps (bench/objective_sweep.py output), moving-average figures first.
 
-  python bench/sweep_table.py results/shading_ren --out results/shading_ren/curves.png
+  python bench/sweep_table.py results/shading_ren --out results/shading_ren/curves.png [--plot-only V ...]
 Each sub-folder of ROOT is a setting (s0, s1, protocol, ...), or ROOT itself holds the curves;
 each NAME_sSEED.jsonl a run.
 Per run, the last probe row: normals of the moving-average weights (probe_ema/, what inference
@@ -80,7 +80,7 @@ def tables(root: Path, order: list[str] | None) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", data
 
 
-def figure(root: Path, data: dict, out: Path, order: list[str] | None) -> None:
+def figure(root: Path, data: dict, out: Path, order: list[str] | None, only: list[str] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,6 +90,7 @@ def figure(root: Path, data: dict, out: Path, order: list[str] | None) -> None:
     for ax, setting in zip(axes[0], data):
         runs = load(folder(root, setting))
         names = [v for v in (order or []) if v in runs] + sorted(v for v in runs if v not in (order or []))
+        names = [v for v in names if only is None or v in only]
         every = list(dict.fromkeys([*(order or []), *sorted(v for d in data.values() for v in d)]))
         for v in names:
             k = every.index(v)  # one colour per variant in every panel
@@ -116,13 +117,18 @@ def main() -> None:
     ap.add_argument("root", type=Path)
     ap.add_argument("--out", type=Path, default=None, help="a PNG of the curves")
     ap.add_argument("--order", nargs="*", default=None, help="variants in this order first")
+    ap.add_argument("--plot-only", nargs="*", default=None, metavar="VARIANT",
+                    help="draw only these variants' curves (the tables keep every variant)")
     a = ap.parse_args()
     md, data = tables(a.root, a.order)
+    unknown = sorted(set(a.plot_only or []) - {v for d in data.values() for v in d})
+    if unknown:
+        ap.error(f"--plot-only: no runs of {', '.join(unknown)} under {a.root}")
     (a.root / "table.md").write_text(md)
     (a.root / "table.json").write_text(json.dumps(data, indent=1) + "\n")
     print(md)
     if a.out:
-        figure(a.root, data, a.out, a.order)
+        figure(a.root, data, a.out, a.order, a.plot_only)
         print(f"wrote {a.out}")
 
 

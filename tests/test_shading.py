@@ -209,6 +209,61 @@ def test_r1_penalty_on_d_m_is_the_squared_gradient_at_the_real_maps_and_smooths_
         load_config("cpu-small", ["loss.r1_m=-1"])
 
 
+def test_a_conditioned_d_m_judges_each_stack_beside_its_image_and_real_maps_beside_a_wrong_image_as_fake():
+    stacks, _ = _blobs(3)
+    torch.manual_seed(0)
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_cond=image"]))
+    out = model.forward_all(stacks, shade_network(stacks))
+    seen = []
+    hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0]))
+    model.discriminator_loss(out)
+    (batch,) = seen
+    n = len(stacks)
+    # real, H(I_r), H(R(M_s)), then M_s beside the previous sample's render
+    assert batch.shape == (4 * n, 12) + stacks.shape[-2:]
+    assert torch.equal(batch[:n], torch.cat([stacks, out["fake_I"].detach()], 1))
+    assert torch.equal(batch[n:2 * n], torch.cat([out["fake_M"].detach(), out["I_r"]], 1))
+    assert torch.equal(batch[2 * n:3 * n], torch.cat([out["rec_M"].detach(), out["fake_I"].detach()], 1))
+    assert torch.equal(batch[3 * n:, :9], stacks) and torch.equal(batch[3 * n:, 9:], out["fake_I"].detach().roll(1, 0))
+    hook.remove()
+    # the generator's D_M terms reach H through the maps, never R through the conditioning image
+    model.zero_grad()
+    terms = model.loss_terms(out)
+    terms["G/adv_D_M_fake_M"][1].backward(retain_graph=True)
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.H.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.R.parameters())
+    # a batch of one has no other sample's render: no mismatched fake
+    one = model.forward_all(stacks[:1], shade_network(stacks[:1]))
+    assert model._mismatched(one) is None and model.discriminator_loss(one)[0].isfinite()
+    assert load_config("paper").loss.adv_m_cond == "none" and load_config("cpu-small").loss.adv_m_cond == "none"
+    with pytest.raises(ConfigError, match="loss.adv_m_cond"):
+        load_config("cpu-small", ["loss.adv_m_cond=pairs"])
+    with pytest.raises(ConfigError, match="loss.rendering_cycle"):
+        load_config("cpu-small", ["loss.adv_m_cond=image", "loss.rendering_cycle=false"])
+
+
+def test_d_m_terms_start_at_adv_m_from_while_d_m_learns_from_the_first_step():
+    stacks, _ = _blobs(2)
+    torch.manual_seed(0)
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_from=100"]))
+    out = model.forward_all(stacks, shade_network(stacks))
+    weights = lambda: {k: w for k, (w, _) in model.loss_terms(out).items() if "D_M" in k}  # noqa: E731
+    assert model.step == 0 and weights() and all(w == 0 for w in weights().values())
+    assert "D/D_M_real" in model.discriminator_loss(out)[1]  # D_M learns meanwhile
+    model.step = 100
+    assert weights()["G/adv_D_M_fake_M"] > 0  # (the reconstructions' terms weigh loss.w_adv_rec, 0 here)
+    model.step = 0
+    assert model.loss_terms(out)["G/adv_D_I_fake_I"][0] > 0  # D_I is not held back
+    # the training loop tells the model its step
+    from train.loop import build_optimisation, generator_step
+    g_params, _, opts, _ = build_optimisation(load_config("cpu-small", tiny_overrides()), model)
+    generator_step(model, opts["G"], g_params, stacks, shade_network(stacks), step=7)
+    assert model.step == 7
+    assert load_config("paper").loss.adv_m_from == 0 and load_config("cpu-small").loss.adv_m_from == 0
+    with pytest.raises(ConfigError, match="loss.adv_m_from"):
+        load_config("cpu-small", ["loss.adv_m_from=-1"])
+
+
 def test_the_per_pixel_prior_knows_the_frame_and_beats_the_constant_on_its_own_data():
     stacks, masks = _blobs(6, seed=3)
     prior = pixel_prior(stacks)

@@ -148,6 +148,16 @@ class LossConfig:
     # protocol's seed 1 (docs/normals_from_shading.md, "D_M without the reconstructions, and with a
     # gradient penalty"); at 0.1 and 1 D_M sits at chance: 0 stays
     r1_m: float = 0.0
+    # Not in the paper: what D_M judges the maps beside. "none" (the paper): the maps alone.
+    # "image": each stack beside the image it goes with (M_s with R(M_s), H(I_r) with I_r, H(R(M_s))
+    # with R(M_s); the images detached), and M_s beside another sample's R(M_s) as one more fake, so
+    # D_M must judge whether the maps fit their image (a matching-aware discriminator, Reed et al.
+    # 2016) rather than whether they look like any training map: it cannot ask H for detail its
+    # image does not show. Needs the rendering cycle (the real pairs are R's renders).
+    adv_m_cond: str = "none"
+    # Not in the paper: the training step from which D_M's generator terms act (D_M itself learns
+    # from step 0, so it judges from the first step it counts). 0 = the paper.
+    adv_m_from: int = 0
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
     # translations (a weighted mean with gan_reduce "mean"); the discriminators still learn
@@ -393,6 +403,7 @@ def validate(cfg: Config) -> Config:
     _choice("loss.gan_reduce", lo.gan_reduce, ("sum", "mean"))
     _choice("loss.normal_length_on", lo.normal_length_on, ("threshold", "car"))
     _choice("loss.adv_m_on", lo.adv_m_on, ("all", "car", "reflection"))
+    _choice("loss.adv_m_cond", lo.adv_m_cond, ("none", "image"))
     _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
@@ -418,7 +429,7 @@ def validate(cfg: Config) -> Config:
               "run.grid_samples", "run.probe_samples", "loss.adv_m_pool")
     _at_least(cfg, 0, "run.seed", "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
-              "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb",
+              "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb", "loss.adv_m_from",
               "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "loss.r1_m", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
@@ -442,6 +453,9 @@ def validate(cfg: Config) -> Config:
     if not lo.shared_discriminator and not (lo.rendering_cycle and lo.decomposition_cycle):
         raise ConfigError("loss.shared_discriminator = false needs both cycles: with one cycle off, one "
                           "discriminator would see no fake at all")
+    if lo.adv_m_cond == "image" and not lo.rendering_cycle:
+        raise ConfigError("loss.adv_m_cond = 'image' needs loss.rendering_cycle: D_M's real pairs are "
+                          "the synthetic maps beside R's renders of them")
     return cfg
 
 

@@ -79,6 +79,7 @@ def diagnose_run(run_dir: Path, probe: Path, checkpoint: Path | None = None, bat
     if checkpoint is not None and Path(checkpoint).resolve().parent != own:  # its figures would carry this run's name
         raise ValueError(f"--checkpoint {checkpoint}: not a checkpoint of --run {run_dir} (those are in {own})")
     cfg, model, step, path = load_run_checkpoint(run_dir, device, checkpoint, raw=True)
+    model.step = step  # the terms weighed as at that step (loss.adv_m_from)
     gen = torch.Generator().manual_seed(seed)
     intr = IntrinsicsData(Path(opts["intrinsics"]), cfg.data.height, cfg.data.width)
     p = load_probe(Path(probe), cfg.data.height, cfg.data.width, limit=None)

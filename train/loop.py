@@ -74,8 +74,11 @@ def all_reduce_grads(params: list[torch.nn.Parameter], world: int) -> None:
         offset += n
 
 
-def generator_step(model, opt_g, g_params, m_s, i_r, autocast=nullcontext, world: int = 1):
-    """One update of R and H (or a baseline's generators); returns the outputs and logs."""
+def generator_step(model, opt_g, g_params, m_s, i_r, autocast=nullcontext, world: int = 1, step: int | None = None):
+    """One update of R and H (or a baseline's generators); returns the outputs and logs. `step`:
+    the steps done before this one, for the loss terms that start later (loss.adv_m_from)."""
+    if step is not None:
+        model.step = step
     with autocast():
         out = model.forward_all(m_s, i_r)
         g_loss, g_logs = model.generator_loss(out)
@@ -523,7 +526,7 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
                     m_s = m_s.contiguous(memory_format=torch.channels_last)
                     i_r = i_r.contiguous(memory_format=torch.channels_last)
                 model.train()
-                out, g_logs = generator_step(model, opt_g, g_params, m_s, i_r, autocast, dd.world)
+                out, g_logs = generator_step(model, opt_g, g_params, m_s, i_r, autocast, dd.world, step)
                 d_logs = discriminator_step(model, opt_d, d_params, out, autocast, dd.world) if opt_d else {}
                 for sched in schedulers.values():
                     sched.step()

@@ -73,8 +73,10 @@ class IntrinsicAutoencoder(nn.Module):
                                        m.r_local_enhancers, m.norm)
         self.H = Decomposer(m.h_ngf, m.h_downsample, m.h_blocks, m.norm, m.normal_output)
         self.D_I = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, m.norm)
-        self.D_M = MultiscaleDiscriminator(9, m.d_ndf, m.d_layers, m.d_scales, m.norm)
+        self.cond_m = cfg.loss.adv_m_cond == "image"
+        self.D_M = MultiscaleDiscriminator(9 + 3 * self.cond_m, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.normal_output = m.normal_output
+        self.step = 0  # training steps done, set by the training loop; only loss.adv_m_from reads it
         init_weights(self, "normal")  # pix2pixHD / CycleGAN: N(0, 0.02)
 
     # -------------------------------------------------------------- groups for optimisers
@@ -156,8 +158,25 @@ class IntrinsicAutoencoder(nn.Module):
         candidates = {"D_I": ("fake_I", "rec_I"), "D_M": ("fake_M", "rec_M")}
         if not self.loss_cfg.shared_discriminator:
             candidates = {"D_I": ("fake_I",), "D_M": ("fake_M",)}
-        reals = {"D_I": out["I_r"], "D_M": out["M_s"]}
+        reals = {"D_I": out["I_r"], "D_M": self._beside("D_M", "M_s", out, out["M_s"])}
         return {d: (reals[d], [k for k in names if k in out]) for d, names in candidates.items()}
+
+    # the image each stack goes with, for a D_M that judges maps beside their image (loss.adv_m_cond)
+    _IMAGE_OF = {"M_s": "fake_I", "fake_M": "I_r", "rec_M": "fake_I"}
+
+    def _beside(self, dname: str, key: str, out: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        """x (out[key], possibly detached) as the named discriminator sees it: with a conditioned D_M,
+        the maps beside their (detached) image, so D_M's gradient reaches the maps only."""
+        if dname != "D_M" or not self.cond_m:
+            return x
+        return torch.cat([x, out[self._IMAGE_OF[key]].detach()], dim=1)
+
+    def _mismatched(self, out: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """M_s beside the next sample's R(M_s): real maps with an image they do not fit, one more fake
+        for a conditioned D_M (None with a batch of one, where there is no other sample)."""
+        if not self.cond_m or len(out["M_s"]) < 2:
+            return None
+        return torch.cat([out["M_s"], out["fake_I"].detach().roll(1, dims=0)], dim=1)
 
     def _disc(self, name: str) -> nn.Module:
         return self.D_I if name == "D_I" else self.D_M
@@ -201,12 +220,13 @@ class IntrinsicAutoencoder(nn.Module):
                                                                      object_mask(h.detach()), gain=self._gain()))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
-            logits = self._judge(dname, torch.cat([out[f] for f in fakes]))
+            logits = self._judge(dname, torch.cat([self._beside(dname, f, out, out[f]) for f in fakes]))
             chunks = [torch.chunk(l, len(fakes)) for l in logits]
             rel = self._adv_weights(fakes)
             norm = sum(rel) if mean else 1.0
+            scale = (lc.w_adv_m * (self.step >= lc.adv_m_from)) if dname == "D_M" else 1.0
             for k, f in enumerate(fakes):
-                w = lc.w_adv * (lc.w_adv_m if dname == "D_M" else 1.0) * rel[k] / norm
+                w = lc.w_adv * scale * rel[k] / norm
                 terms[f"G/adv_{dname}_{f}"] = (w, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
         return terms
 
@@ -245,11 +265,14 @@ class IntrinsicAutoencoder(nn.Module):
         logs: dict[str, torch.Tensor] = {}
         total = out["M_s"].new_zeros((), dtype=torch.float32)
         for dname, (real, fakes) in self.discriminator_inputs(out).items():
-            batch = torch.cat([real] + [out[f].detach() for f in fakes])
-            chunks = [torch.chunk(l, 1 + len(fakes)) for l in self._judge(dname, batch)]
+            fake_in = [self._beside(dname, f, out, out[f].detach()) for f in fakes]
+            wrong = self._mismatched(out) if dname == "D_M" else None
+            fake_in += [wrong] if wrong is not None else []
+            batch = torch.cat([real.detach()] + fake_in)
+            chunks = [torch.chunk(l, 1 + len(fake_in)) for l in self._judge(dname, batch)]
             loss_real = gan_loss([c[0] for c in chunks], True, lc.gan, lc.gan_reduce)
             loss_fake = sum(gan_loss([c[k + 1] for c in chunks], False, lc.gan, lc.gan_reduce)
-                            for k in range(len(fakes))) / len(fakes)
+                            for k in range(len(fake_in))) / len(fake_in)
             logs[f"D/{dname}_real"], logs[f"D/{dname}_fake"] = loss_real, loss_fake
             total = total + 0.5 * (loss_real + loss_fake)
             if dname == "D_M" and lc.r1_m > 0:
