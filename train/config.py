@@ -128,7 +128,7 @@ class LossConfig:
     # "sum": GAN terms summed over scales and fakes (pix2pixHD); "mean": averaged over both, so
     # each discriminator weighs as one term of Eq. 7 however many scales and fakes it judges
     gan_reduce: str = "mean"
-    # D_M's generator terms weigh w_adv * w_adv_m (D_M does not see the image). 0 (H learns from R's
+    # D_M's generator terms weigh w_adv * w_adv_m (D_M sees no image unless adv_m_cond). 0 (H learns from R's
     # renders alone) passes S1 on three seeds (23.4-24.0 deg against 29.1-29.4) but loses 0.3 / 2.3 deg
     # on the 32x64 protocol (docs/normals_from_shading.md, "Without D_M"): 0.1 stays
     w_adv_m: float = 0.1
