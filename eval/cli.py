@@ -142,14 +142,20 @@ def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, qui
 @click.option("--inception", type=click.Path(dir_okay=False), default=None)
 @click.option("--gallery", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="A folder of photos no run trained on: every run's H decomposes them for the report's gallery.")
+@click.option("--reference", type=click.Path(path_type=Path), default=None,
+              help="A PNG or JPEG shown after the report's own decompositions, e.g. a trained model's beside a short run's.")
+@click.option("--reference-caption", default="", help="What --reference shows (its caption in the report).")
 @click.option("--quiet", is_flag=True, help="No progress bars; print the report's paths, not its tables.")
-def report(runs, data, real, intrinsics, out, limit, grid, inception, gallery, quiet) -> None:
+def report(runs, data, real, intrinsics, out, limit, grid, inception, gallery, reference, reference_caption,
+           quiet) -> None:
     """Tables like the paper's (1: FID/KID, 3: decomposition), image grids and loss curves: HTML + Markdown."""
     from .report import build_report
 
     with one_line_errors():
+        if reference_caption and reference is None:
+            raise click.UsageError("--reference-caption: give the picture it describes with --reference")
         page = build_report(list(runs), data, real, out, intrinsics, limit, grid, inception, progress=not quiet,
-                            gallery=gallery)
+                            gallery=gallery, reference=(reference, reference_caption or reference.name) if reference else None)
     click.echo(f"{page}\n{Path(out) / 'report.md'}")
     if not quiet:  # --quiet: the paths only (scripts read the files)
         click.echo((Path(out) / "report.md").read_text())

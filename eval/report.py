@@ -58,8 +58,22 @@ def _png_bytes(img: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _data_uri(png: bytes) -> str:
-    return "data:image/png;base64," + base64.b64encode(png).decode()
+def _data_uri(png: bytes, mime: str = "image/png") -> str:
+    return f"data:{mime};base64," + base64.b64encode(png).decode()
+
+
+def read_reference(path: Path) -> tuple[bytes, str]:
+    """A picture to show beside the report's own (`--reference`): its bytes and MIME type, checked
+    before any evaluation work."""
+    try:
+        with Image.open(path) as im:
+            fmt = im.format
+            im.verify()
+    except Exception as exc:  # PIL raises OSError, SyntaxError and others for broken files
+        raise ValueError(f"--reference {path}: not a readable image ({exc})") from None
+    if fmt not in ("PNG", "JPEG"):
+        raise ValueError(f"--reference {path}: a {fmt} image; expected PNG or JPEG")
+    return Path(path).read_bytes(), "image/png" if fmt == "PNG" else "image/jpeg"
 
 
 def loss_plot(rows: list[dict], title: str) -> bytes:
@@ -191,11 +205,14 @@ def _reference_entries(train_intrinsics: Path, data: Path, real: Path, intrinsic
 
 def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics: Path, limit: int | None = None,
                  grid: int = 4, inception: str | None = None, progress: bool = True,
-                 references: bool = True, gallery: Path | None = None) -> Path:
+                 references: bool = True, gallery: Path | None = None,
+                 reference: tuple[Path, str] | None = None) -> Path:
     """Evaluate every run on the same sets and write report.html, report.md and results.json.
 
     Refuses sets that overlap against the protocol (eval.protocol); FID/KID fakes are R's
-    renders of `intrinsics`, which must be a set the runs never trained on.
+    renders of `intrinsics`, which must be a set the runs never trained on. `reference`: a picture
+    and its caption shown after the report's own decompositions (e.g. a trained model's, beside a
+    short run's).
     """
     import shutil
 
@@ -203,6 +220,7 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
     from .protocol import check_sets, describe
 
     out = Path(out)
+    ref = (*read_reference(reference[0]), reference[1]) if reference else None
     runs_opts = [(Path(run), *load_run_options(run)) for run in runs]  # a dataset folder given as a run fails here
     sets = {"eval": describe("--data", data), "real": describe("--real", real), "fid": describe("--intrinsics", intrinsics)}
     warnings: list[str] = []
@@ -266,9 +284,13 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
     save_png(out / "render_grid.png", render_grid_png(entries, Path(intrinsics), grid))
     tiles = decomposition_tiles(entries, Path(data), grid)
     save_png(out / "decomposition_grid.png", decomposition_grid_png(tiles))
-    page = _html(entries, tiles, data, real, Path(intrinsics), grid, datasets, warnings)
+    ref_name = None
+    if ref is not None:
+        ref_name = "reference" + (".png" if ref[1] == "image/png" else ".jpg")
+        atomic_write_bytes(out / ref_name, ref[0])
+    page = _html(entries, tiles, data, real, Path(intrinsics), grid, datasets, warnings, ref)
     atomic_write_bytes(out / "report.html", page.encode())
-    atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings).encode())
+    atomic_write_bytes(out / "report.md", _markdown(entries, datasets, warnings, ref and (ref_name, ref[2])).encode())
     atomic_write_json(out / "results.json", {"runs": [{k: e[k] for k in RESULT_RUN_FIELDS}
                                                       for e in entries if not e.get("reference")],
                                              "references": [{k: e[k] for k in ("label", "dec", "fid")}
@@ -468,7 +490,7 @@ def _md_table(head, rows) -> str:
     return "\n".join(lines)
 
 
-def _markdown(entries, datasets, warnings) -> str:
+def _markdown(entries, datasets, warnings, reference: tuple[str, str] | None = None) -> str:
     parts = ["# Intrinsic Autoencoder evaluation", "",
              "## Table 1: realism of R's images (FID and KID against real images; lower is better)", "",
              _md_table(*_table1(entries)), "",
@@ -482,6 +504,8 @@ def _markdown(entries, datasets, warnings) -> str:
     if any(e.get("gallery") for e in entries):
         parts += ["", "## Your photos", "", "Each run's H on photos held out of training (photo, normal, albedo, "
                   "reflection, R(H(photo))): report.html, and runs/NN_name/gallery/photos/."]
+    if reference:
+        parts += ["", "## For comparison", "", f"![{reference[1]}]({reference[0]})", "", f"*{reference[1]}*"]
     parts += ["", "Pictures and loss curves: report.html; per-run files under runs/."]
     return "\n".join(parts) + "\n"
 
@@ -491,7 +515,7 @@ def _img(src: str, alt: str) -> str:
 
 
 def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: int, datasets: list[dict],
-          warnings: list[str]) -> str:
+          warnings: list[str], reference: tuple[bytes, str, str] | None = None) -> str:
     def table(head, rows):
         th = "".join(f"<th>{html.escape(h)}</th>" for h in head)
         trs = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
@@ -538,6 +562,11 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
                         "<p>Per photo: the photo, H's normal, albedo and reflection at the photo's size, and "
                         "R(H(photo)). Files: runs/NN_name/gallery/photos/.</p>" + "".join(blocks))
     warn_html = "".join(f'<p class="warning">WARNING: {html.escape(w)}</p>' for w in warnings)
+    reference_html = ""
+    if reference is not None:
+        data_bytes, mime, caption = reference
+        reference_html = ("<h2>For comparison</h2><figure>" + _img(_data_uri(data_bytes, mime), caption)
+                          + f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(Path(e['run']).name)})</h3>"
                      + _img(_data_uri(e["curve"]), f"loss curves {e['label']}")
                      + (_img(_data_uri(e["probe_curve"]), f"probe curves {e['label']}") if e.get("probe_curve") else "")
@@ -581,6 +610,7 @@ photos, full training), not as a like-for-like comparison.</p>
 <h2>Intrinsic decomposition: each run's H next to the ground truth</h2>
 <table><thead><tr><th></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
 <tbody>{''.join(dec_rows)}</tbody></table>
+{reference_html}
 {gallery_html}
 <h2>Data sets</h2>
 <p>Training intrinsics, real images and the evaluation set must not share samples (refused otherwise); FID fakes

@@ -190,8 +190,12 @@ def report(tmp_path_factory):
         tiny_fit(run, intr, photos, 3, *extra)
         runs.append(str(run))
     out = root / "out"
+    from PIL import Image
+
+    Image.fromarray(np.full((32, 64, 3), 200, np.uint8)).save(root / "trained.png")
     proc = _cli("report", *runs, "--data", str(pbr), "--real", str(photos), "--intrinsics", str(unseen),
-                "--out", str(out), "--grid", "2", "--quiet", "--gallery", str(photos))
+                "--out", str(out), "--grid", "2", "--quiet", "--gallery", str(photos),
+                "--reference", str(root / "trained.png"), "--reference-caption", "A trained model <for comparison>")
     return out, proc
 
 
@@ -223,6 +227,12 @@ def test_report_has_tables_like_the_papers(report):
     assert [p.stem for p in panels] == [f"photo_{i}" for i in range(4)]
     assert "Your photos" in (out / "report.html").read_text() and "## Your photos" in md
     assert "Table 1" not in proc.stdout  # --quiet prints the paths, not the tables
+    # --reference: the picture and its caption after the report's own decompositions
+    page = (out / "report.html").read_text()
+    assert (out / "reference.png").read_bytes() == (out.parent / "trained.png").read_bytes()
+    assert page.index("Intrinsic decomposition: each run") < page.index("For comparison")
+    assert "A trained model &lt;for comparison&gt;" in page and "data:image/png;base64," in page
+    assert "![A trained model <for comparison>](reference.png)" in md
 
 
 def test_report_page_loads_in_headless_chromium(report, headless_chromium):
@@ -306,6 +316,14 @@ def test_report_refuses_the_training_intrinsics_as_fid_set(report, tmp_path):
     not_a_run = _cli("report", str(pbr), "--data", str(pbr), "--real", opts["real"], "--intrinsics",
                      str(out.parent / "unseen"), "--out", str(tmp_path / "o2"), "--quiet", check=False)
     assert not_a_run.returncode == 1 and "not a run folder" in not_a_run.stderr and "Traceback" not in not_a_run.stderr
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"\xff\xd8 not a jpeg")
+    for extra, message in ((["--reference", str(broken)], f"--reference {broken}: not a readable image"),
+                           (["--reference-caption", "x"], "--reference-caption: give the picture")):
+        proc = _cli("report", str(run), "--data", str(pbr), "--real", opts["real"], "--intrinsics",
+                    str(out.parent / "unseen"), "--out", str(tmp_path / "o3"), "--quiet", *extra, check=False)
+        assert proc.returncode != 0 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert not (tmp_path / "o3").exists()  # refused before any work
 
 
 def test_report_recomputes_predictions_after_more_training_other_data_or_retraining_in_place(tmp_path):
