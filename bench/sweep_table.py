@@ -86,8 +86,9 @@ def figure(root: Path, data: dict, out: Path, order: list[str] | None, only: lis
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(data), figsize=(4.4 * len(data), 3.8), sharey=True, squeeze=False)
-    for ax, setting in zip(axes[0], data):
+    shown = [st for st in data if only is None or any(v in only for v in data[st])]  # no empty panels
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.4 * len(shown), 3.8), sharey=True, squeeze=False)
+    for ax, setting in zip(axes[0], shown):
         runs = load(folder(root, setting))
         names = [v for v in (order or []) if v in runs] + sorted(v for v in runs if v not in (order or []))
         names = [v for v in names if only is None or v in only]

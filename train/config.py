@@ -153,10 +153,13 @@ class LossConfig:
     # with R(M_s); the images detached), and M_s beside another sample's R(M_s) as one more fake, so
     # D_M must judge whether the maps fit their image (a matching-aware discriminator, Reed et al.
     # 2016) rather than whether they look like any training map: it cannot ask H for detail its
-    # image does not show. Needs the rendering cycle (the real pairs are R's renders).
+    # image does not show. Needs the rendering cycle (the real pairs are R's renders). Measured worse
+    # on S1 and the 32x64 protocol (5-6 deg at step 1250, both seeds): the image half gives the domain
+    # gap away (docs/normals_from_shading.md, "D_M beside the image, and D_M from the decay's start").
     adv_m_cond: str = "none"
     # Not in the paper: the training step from which D_M's generator terms act (D_M itself learns
-    # from step 0, so it judges from the first step it counts). 0 = the paper.
+    # from step 0, so it judges from the first step it counts). 0 = the paper. From the decay's start
+    # (1500 of 3000) S1 ends at the default's figure and the protocol 1.3-2.5 deg behind it (same section).
     adv_m_from: int = 0
     # Not in the paper: with a shared discriminator, the generator terms of the cycle
     # reconstructions (R(H(I_r)), H(R(M_s))) weigh w_adv_rec times those of the direct
