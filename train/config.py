@@ -144,7 +144,7 @@ class LossConfig:
     # Not in the paper: R1 gradient penalty on D_M (Mescheder et al. 2018), gamma / 2 x the squared
     # gradient of its logits at the real maps M_s: a D_M whose verdict cannot turn on pixel-level
     # perturbations of a real map, so it cannot ask H for texture the image does not show. 0 = the paper.
-    # 0.01 passes S1 on three seeds (22.3-23.2 deg against 29.1-29.4) and S0 (21.3 against 23.3-23.7),
+    # 0.01 passes S1 on three seeds (22.3-23.2 deg against 29.1-29.4) and S0 (21.3 on two, against 23.3-23.7),
     # but on the 32x64 protocol it is level on average over three seeds (-0.5, +2.6, -1.2 deg) and R's
     # colour correlation falls below 0.85 on two (docs/normals_from_shading.md, "D_M without the
     # reconstructions, and with a gradient penalty"); at 0.1 and 1 D_M sits at chance: 0 stays
