@@ -66,14 +66,15 @@ def read_reference(path: Path) -> tuple[bytes, str]:
     """A picture to show beside the report's own (`--reference`): its bytes and MIME type, checked
     before any evaluation work."""
     try:
-        with Image.open(path) as im:
+        data = Path(path).read_bytes()  # read once: the bytes checked are the bytes shown
+        with Image.open(io.BytesIO(data)) as im:
             fmt = im.format
             im.verify()
     except Exception as exc:  # PIL raises OSError, SyntaxError and others for broken files
         raise ValueError(f"--reference {path}: not a readable image ({exc})") from None
     if fmt not in ("PNG", "JPEG"):
         raise ValueError(f"--reference {path}: a {fmt} image; expected PNG or JPEG")
-    return Path(path).read_bytes(), "image/png" if fmt == "PNG" else "image/jpeg"
+    return data, "image/png" if fmt == "PNG" else "image/jpeg"
 
 
 def loss_plot(rows: list[dict], title: str) -> bytes:
