@@ -45,7 +45,10 @@ sinfo
 cd "$WORK"
 export IAE SBATCH_OPTS="--cpus-per-task=1 --mem=500M"
 ARGS=(--resolution 64x32 --seed 5 --views-per-car 2 --background black)
-out=$("$ROOT/deploy/slurm/submit.sh" 3 "$WORK/set" 12 "${ARGS[@]}")
+# 20 samples per shard: enough that shard 1 is still rendering when it is cancelled (with the skies
+# cached, 4 per shard finished before scancel landed)
+N=60
+out=$("$ROOT/deploy/slurm/submit.sh" 3 "$WORK/set" $N "${ARGS[@]}")
 echo "$out"
 array=$(echo "$out" | sed -n 's/^shards: job \([0-9]*\).*/\1/p')
 # cancel shard 1 once it has written its first sample (a node lost in the middle of a run)
@@ -57,11 +60,11 @@ if "$IAE" status "$WORK"/set/part*; then echo "FAIL: status called a cancelled r
 [ ! -e "$WORK/set/merged/manifest.jsonl" ] || { echo "FAIL: the merge job merged an unfinished run"; exit 1; }
 rerun=$("$IAE" status "$WORK"/set/part* | sed -n 's/.*--array=\([0-9,]*\).*/\1/p' || true)
 echo "--- resubmitting array task(s) $rerun"
-OUT="$WORK/set" COUNT=12 SHARDS=3 IAE_ARGS="${ARGS[*]}" sbatch --wait $SBATCH_OPTS --array="$rerun" --export=ALL \
+OUT="$WORK/set" COUNT=$N SHARDS=3 IAE_ARGS="${ARGS[*]}" sbatch --wait $SBATCH_OPTS --array="$rerun" --export=ALL \
     "$ROOT/deploy/slurm/generate.sbatch"
 OUT="$WORK/set" sbatch --wait $SBATCH_OPTS --export=ALL "$ROOT/deploy/slurm/merge.sbatch"
 "$IAE" status "$WORK"/set/part*
-"$IAE" intrinsics --out "$WORK/one_go" --count 12 "${ARGS[@]}" --quiet
+"$IAE" intrinsics --out "$WORK/one_go" --count $N "${ARGS[@]}" --quiet
 python3 - "$WORK" <<'PY'
 import json, sys
 from pathlib import Path
@@ -70,5 +73,5 @@ rows = lambda p: [(r["index"], r["sha256"]) for r in map(json.loads, (p / "manif
 merged, one = rows(w / "set" / "merged"), rows(w / "one_go")
 assert json.loads((w / "set" / "merged" / "dataset.json").read_text())["complete"], "merged set incomplete"
 assert merged == one, "merged samples differ from the set made in one go"
-print(f"PASS: 12 samples in 3 Slurm shards, shard 1 cancelled and repaired, merged = one go, byte for byte")
+print(f"PASS: {len(merged)} samples in 3 Slurm shards, shard 1 cancelled and repaired, merged = one go, byte for byte")
 PY
