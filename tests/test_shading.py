@@ -175,6 +175,15 @@ def test_d_m_judges_pooled_or_car_only_maps_when_asked_and_the_paper_keeps_the_w
     # the reflection map only: normals and albedo reach D_M as zeros, the reflection map as it is
     batch = _d_m_input(stacks, "loss.adv_m_on=reflection")
     assert batch[:, :6].abs().max() == 0 and torch.equal(batch[: len(stacks), 6:], stacks[:, 6:])
+    assert load_config("cpu-small").loss.adv_m_on == "reflection"  # the measured default
+    # so D_M's generator terms reach H's reflection map and never its normals or albedo
+    torch.manual_seed(0)
+    model = build_model(load_config("cpu-small", tiny_overrides()))
+    out = model.forward_all(stacks, shade_network(stacks))
+    out["fake_M"].retain_grad()
+    model.loss_terms(out)["G/adv_D_M_fake_M"][1].backward()
+    g = out["fake_M"].grad
+    assert g[:, :6].abs().max() == 0 and g[:, 6:].abs().max() > 0
 
 
 def test_r1_penalty_on_d_m_is_the_squared_gradient_at_the_real_maps_and_smooths_d_m():
@@ -183,9 +192,11 @@ def test_r1_penalty_on_d_m_is_the_squared_gradient_at_the_real_maps_and_smooths_
     model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.r1_m=4"]))
     out = model.forward_all(stacks, shade_network(stacks))
     total, logs = model.discriminator_loss(out)
-    # by hand: the gradient of D_M's summed logits (both scales) at M_s
+    # by hand: the gradient of D_M's summed logits (both scales) at M_s, as D_M sees it (by default
+    # the reflection map only: no gradient reaches the normals and albedo)
     x = stacks.clone().requires_grad_(True)
-    (g,) = torch.autograd.grad(sum(l.sum() for l in model.D_M(x)), x)
+    (g,) = torch.autograd.grad(sum(l.sum() for l in model._judge("D_M", x)), x)
+    assert g[:, :6].abs().max() == 0 and g[:, 6:].abs().max() > 0
     expected = float(g.pow(2).flatten(1).sum(1).mean())
     assert logs["D/D_M_r1"] == pytest.approx(expected, rel=1e-4) and expected > 0
     model.loss_cfg.r1_m = 0.0
@@ -212,7 +223,8 @@ def test_r1_penalty_on_d_m_is_the_squared_gradient_at_the_real_maps_and_smooths_
 def test_a_conditioned_d_m_judges_each_stack_beside_its_image_and_real_maps_beside_a_wrong_image_as_fake():
     stacks, _ = _blobs(3)
     torch.manual_seed(0)
-    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_cond=image"]))
+    # on the whole maps (the default judges the reflection map only, so the batch's first 6 would be 0)
+    model = build_model(load_config("cpu-small", tiny_overrides() + ["loss.adv_m_cond=image", "loss.adv_m_on=all"]))
     out = model.forward_all(stacks, shade_network(stacks))
     seen = []
     hook = model.D_M.register_forward_pre_hook(lambda mod, args: seen.append(args[0]))
