@@ -499,3 +499,33 @@ def test_the_shading_budget_takes_a_cycles_image_apart():
     assert shares == pytest.approx(1.0, abs=1e-6)
     sample["diffuse_shading"] = shading * rng.uniform(0.5, 1.5, (h, w, 1))  # noise the SH cannot draw
     assert budget(sample)["residual_diffuse_shading"] > 0.1
+
+
+def test_the_probe_plot_draws_the_moving_average_beside_both_no_image_bars_and_the_speckle():
+    from train.probe import probe_figure, probe_plot
+
+    def row(step: int, ema: bool) -> dict:
+        r = {"step": step, "probe/normal_deg": 40.0 - step / 100, "probe/const_normal_deg": 40.0,
+             "probe/prior_normal_deg": 35.0, "probe/albedo_l1": 50.0, "probe/const_albedo_l1": 70.0,
+             "probe/prior_albedo_l1": 67.0, "probe/reflection_l1": 40.0, "probe/const_reflection_l1": 52.0,
+             "probe/prior_reflection_l1": 37.0, "probe/normal_hf_ratio": 2.0, "probe/albedo_hf_ratio": 1.5}
+        if ema:
+            r.update({"probe_ema/normal_deg": 39.0 - step / 100, "probe_ema/normal_hf_ratio": 0.4,
+                      "probe_ema/albedo_hf_ratio": 1.1})
+        return r
+
+    assert probe_figure([{"step": 10, "G/total": 1.0}]) is None  # no probe rows: nothing to draw
+    fig = probe_figure([row(100, True), {"step": 150, "G/total": 1.0}, row(200, True)], "full")
+    labels = [[t.get_text() for t in ax.get_legend().get_texts()] for ax in fig.axes]
+    assert {"H normals (moving avg.)", "H normals (raw)", "no image, constant",
+            "no image, per-pixel prior"} <= set(labels[0])
+    assert "albedo, per-pixel prior" in labels[1] and "reflection, constant" in labels[1]
+    ema_curve = [ln for ln in fig.axes[0].get_lines() if ln.get_label() == "H normals (moving avg.)"][0]
+    assert list(ema_curve.get_ydata()) == [38.0, 37.0]  # the moving average's figures, one per probe row
+    speckle = [ln for ln in fig.axes[2].get_lines() if ln.get_label() == "normals"][0]
+    assert list(speckle.get_ydata()) == [0.4, 0.4]  # read from the moving average where the rows have it
+    # a run probed before the moving average and the prior existed: raw curve and constant only
+    old = [{k: v for k, v in row(s, False).items() if "prior" not in k} for s in (100, 200)]
+    labels = [t.get_text() for t in probe_figure(old).axes[0].get_legend().get_texts()]
+    assert labels == ["H normals", "no image, constant"]
+    assert probe_plot(old)[:8] == b"\x89PNG\r\n\x1a\n"

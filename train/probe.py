@@ -248,45 +248,78 @@ def input_sensitivity(renders: torch.Tensor, images: torch.Tensor, on: torch.Ten
 
 
 def probe_plot(rows: list[dict], title: str = "") -> bytes | None:
-    """PNG of the probe curves in `stats.jsonl` rows (None when no row has them): H's errors
-    beside the constant predictor's (dashed), normal correlations, R's input sensitivity and colour
-    correlation."""
-    rows = [r for r in rows if f"{PROBE_PREFIX}normal_deg" in r]
-    if not rows:
+    """PNG of the probe curves in `stats.jsonl` rows (None when no row has them): see probe_figure."""
+    fig = probe_figure(rows, title)
+    if fig is None:
         return None
     import io
 
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def probe_figure(rows: list[dict], title: str = ""):
+    """The probe curves of `stats.jsonl` rows as a matplotlib figure (None when no row has them).
+
+    H's errors with the moving-average weights (solid; what inference uses) and the raw weights
+    (faint), beside the two bars that use no image: the constant predictor (dashed) and the
+    per-pixel prior (dash-dot), the stronger of which a decomposition has to beat; H's speckle
+    (high-frequency energy over the truth's); normal correlations, R's input sensitivity and
+    colour correlation."""
+    rows = [r for r in rows if f"{PROBE_PREFIX}normal_deg" in r]
+    if not rows:
+        return None
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     steps = [r["step"] for r in rows]
+    has_ema = any(f"{EMA_PREFIX}normal_deg" in r for r in rows)
 
-    def series(key: str) -> list[float]:
-        return [r.get(PROBE_PREFIX + key, np.nan) for r in rows]
+    def series(key: str, prefix: str = PROBE_PREFIX) -> list[float]:
+        return [r.get(prefix + key, np.nan) for r in rows]
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
-    axes[0].plot(steps, series("normal_deg"), label="H normals", color="C0")
-    axes[0].plot(steps, series("const_normal_deg"), "--", label="constant predictor", color="C0", alpha=0.6)
+    def h_curve(ax, key: str, label: str, color: str) -> None:
+        if has_ema:
+            ax.plot(steps, series(key, EMA_PREFIX), label=f"{label} (moving avg.)", color=color)
+            ax.plot(steps, series(key), label=f"{label} (raw)", color=color, alpha=0.3, lw=0.8)
+        else:
+            ax.plot(steps, series(key), label=label, color=color)
+
+    def bars(ax, key: str, label: str, color: str) -> None:
+        ax.plot(steps, series(f"const_{key}"), "--", color=color, alpha=0.6, label=f"{label}, constant")
+        if any(np.isfinite(series(f"prior_{key}"))):
+            ax.plot(steps, series(f"prior_{key}"), "-.", color=color, alpha=0.6, label=f"{label}, per-pixel prior")
+
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.4))
+    h_curve(axes[0], "normal_deg", "H normals", "C0")
+    bars(axes[0], "normal_deg", "no image", "0.4")
     axes[0].set_ylabel("mean angle (deg)")
-    for k, (key, name) in enumerate((("albedo_l1", "albedo"), ("reflection_l1", "reflection"), ("render_l1", "R image"))):
-        axes[1].plot(steps, series(key), label=f"{name}", color=f"C{k + 1}")
-        if key != "render_l1":
-            axes[1].plot(steps, series(f"const_{key}"), "--", color=f"C{k + 1}", alpha=0.6, label=f"{name}, constant")
+    for k, (key, name) in enumerate((("albedo_l1", "albedo"), ("reflection_l1", "reflection"))):
+        h_curve(axes[1], key, name, f"C{k + 1}")
+        bars(axes[1], key, name, f"C{k + 1}")
+    axes[1].plot(steps, series("render_l1"), label="R image", color="C3")
     axes[1].set_ylabel("L1 (0-255 sRGB, object pixels)")
+    pre = EMA_PREFIX if has_ema else PROBE_PREFIX
+    axes[2].plot(steps, series("normal_hf_ratio", pre), label="normals", color="C0")
+    axes[2].plot(steps, series("albedo_hf_ratio", pre), label="albedo", color="C1")
+    axes[2].axhline(1.0, color="0.4", ls="--", lw=0.8, label="the truth's")
+    axes[2].set_ylabel("high-frequency energy / truth's")
     for k, axis in enumerate("xyz"):
-        axes[2].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
-    axes[2].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
-    axes[2].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
-    axes[2].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3")
-    axes[2].set_ylim(-0.2, 1.3)
-    for ax, what in zip(axes, ("H: normals", "H: albedo, reflection; R", "agreement")):
+        axes[3].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
+    axes[3].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
+    axes[3].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
+    axes[3].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3")
+    axes[3].set_ylim(-0.2, 1.3)
+    whats = ("H: normals (lower is better)", "H: albedo, reflection; R", "H: speckle", "agreement")
+    for ax, what in zip(axes, whats):
         ax.set_xlabel("step")
         ax.set_title(f"{title}: {what}" if title else what, fontsize=9)
         ax.legend(fontsize=6)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return buf.getvalue()
+    return fig
