@@ -1,9 +1,11 @@
 """Side by side: the probe figures of several sanity-setting runs (an A/B of objectives).
 
-    python bench/sanity_ab.py --out results/shading LABEL=RUN_DIR [LABEL=RUN_DIR ...]
+    python bench/sanity_ab.py --out results/shading LABEL=RUN_DIR [LABEL=RUN_DIR ...] [LABEL=ROWS.jsonl ...]
 
 Each run folder comes from `iae-eval reproduce --budget sanity [--set ...]` (OUT/runs/S0/full_seedN) or
-`iae-train fit --probe`. Writes, into --out: `table.md` (the last probe row of every run: moving-average
+`iae-train fit --probe`. A committed probe-rows file (`LABEL_probe.jsonl` written here, or a
+`bench/objective_sweep.py` curve) joins the table and the curves as a reference; its seed is its
+rows' `seed` field, and nothing of it is copied. Writes, into --out: `table.md` (the last probe row of every run: moving-average
 and raw normals, the raw curve's step-to-step swing over its last 4 probes, the two no-image bars,
 albedo, reflection, speckle, R's input sensitivity and colour correlation), `curves.png` (moving
 average solid, raw faint, the bars dashed) and per run its probe rows (`LABEL_probe.jsonl`) and
@@ -36,9 +38,18 @@ def row_figures(rows: list[dict]) -> dict:
             "r_colour_corr": r[pre + "r_colour_corr"]}
 
 
+def _line(label: str, f: dict) -> str:
+    nan = float("nan")
+    return (f"| {label} | {f['seed']} | {f['step']} | {f['normal_deg']:.1f} ({f['raw_normal_deg']:.1f}; "
+            f"{f['swing_deg']:.1f}) | {f['const_normal_deg']:.1f} / {f['prior_normal_deg'] or nan:.1f} | "
+            f"{f['albedo_l1']:.1f} | {f['reflection_l1']:.1f} | {f['normal_hf_ratio'] or nan:.2f} / "
+            f"{f['albedo_hf_ratio'] or nan:.2f} | " + " / ".join(f"{c:.2f}" for c in f["corr"])
+            + f" | {f['r_sensitivity']:.2f} / {f['r_colour_corr']:.2f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+", help="LABEL=RUN_DIR")
+    ap.add_argument("runs", nargs="+", help="LABEL=RUN_DIR or LABEL=ROWS.jsonl")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--title", default="probe normals")
     ap.add_argument("--relative-to", type=Path, default=None,
@@ -47,9 +58,12 @@ def main() -> None:
     runs = []
     for item in args.runs:
         label, _, path = item.partition("=")
-        if not path or not (Path(path) / "stats.jsonl").exists():
-            sys.exit(f"{item}: expected LABEL=RUN_DIR with a stats.jsonl")
-        rows = probe_rows(Path(path))
+        if path.endswith(".jsonl") and Path(path).is_file():
+            rows = [r for r in map(json.loads, Path(path).read_text().splitlines()) if "probe/normal_deg" in r]
+        elif not path or not (Path(path) / "stats.jsonl").exists():
+            sys.exit(f"{item}: expected LABEL=RUN_DIR with a stats.jsonl, or LABEL=ROWS.jsonl")
+        else:
+            rows = probe_rows(Path(path))
         if not rows:
             sys.exit(f"{path}: no probe rows (train with --probe)")
         runs.append((label, Path(path), rows))
@@ -58,15 +72,16 @@ def main() -> None:
              "speckle N / A | corr x / y / z | R sensitivity / colour |", "|" + "---|" * 10]
     summary = {}
     for label, path, rows in runs:
-        opts = json.loads((path / "training_options.json").read_text())
         f = row_figures(rows)
+        if path.is_file():  # a reference curve: already committed, nothing to copy
+            f["seed"] = rows[-1].get("seed", "-")
+            summary[label] = f
+            lines.append(_line(label, f))
+            continue
+        opts = json.loads((path / "training_options.json").read_text())
         f["seed"] = opts["config"]["run"]["seed"]
         summary[label] = f
-        lines.append(f"| {label} | {f['seed']} | {f['step']} | {f['normal_deg']:.1f} ({f['raw_normal_deg']:.1f}; "
-                     f"{f['swing_deg']:.1f}) | {f['const_normal_deg']:.1f} / {f['prior_normal_deg'] or float('nan'):.1f} | "
-                     f"{f['albedo_l1']:.1f} | {f['reflection_l1']:.1f} | {f['normal_hf_ratio'] or float('nan'):.2f} / "
-                     f"{f['albedo_hf_ratio'] or float('nan'):.2f} | " + " / ".join(f"{c:.2f}" for c in f["corr"])
-                     + f" | {f['r_sensitivity']:.2f} / {f['r_colour_corr']:.2f} |")
+        lines.append(_line(label, f))
         with open(args.out / f"{label}_probe.jsonl", "w") as fh:
             for r in rows:
                 fh.write(json.dumps({k: v for k, v in r.items() if k == "step" or k.startswith("probe")}) + "\n")

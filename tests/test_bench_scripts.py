@@ -33,3 +33,29 @@ def test_every_sweep_variant_is_a_valid_config():
     cfg = load_config("cpu-small", shading["default"]["set"])
     assert cfg.model.renderer == "net" and cfg.loss.w_dec == 10  # "default" = the previous defaults, pinned
     assert "model.kind=oracle" in shading["oracle"]["set"] and "model.renderer=net" not in shading["oracle"]["set"]
+
+
+def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
+    """A probe-rows file (a sweep's curve) joins the table beside run folders, its seed from its rows."""
+    import json
+
+    def row(step: int, deg: float) -> dict:
+        r = {"step": step, "seed": 21, "probe/normal_deg": deg + 1, "probe_ema/normal_deg": deg,
+             "probe/const_normal_deg": 40.0, "probe/prior_normal_deg": 35.0}
+        for pre in ("probe/", "probe_ema/"):
+            r.update({pre + "albedo_l1": 33.0, pre + "reflection_l1": 30.0, pre + "normal_hf_ratio": 2.0,
+                      pre + "albedo_hf_ratio": 1.5, pre + "r_sensitivity": 0.8, pre + "r_colour_corr": 0.9,
+                      **{f"{pre}normal_corr_{a}": 0.5 for a in "xyz"}})
+        return r
+
+    rows = tmp_path / "ref.jsonl"
+    rows.write_text("".join(json.dumps(row(s, d)) + "\n" for s, d in ((250, 45.0), (500, 38.5), (750, 36.0))))
+    out = tmp_path / "ab"
+    proc = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"ref_s21={rows}"], cwd=ROOT,
+                          capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "| ref_s21 | 21 | 750 | 36.0 (37.0; 4.5) | 40.0 / 35.0 |" in (out / "table.md").read_text()
+    assert (out / "curves.png").stat().st_size > 1000 and not (out / "ref_s21_probe.jsonl").exists()
+    bad = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"x={tmp_path / 'none'}"],
+                         cwd=ROOT, capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
+    assert bad.returncode != 0 and "expected LABEL=RUN_DIR" in bad.stderr
