@@ -145,7 +145,9 @@ class LossConfig:
     # "reflection" (measured, docs/normals_from_shading.md "D_M on the reflection map only, on every
     # seed"): S1 23.4-24.0 deg against 29.1-29.4 and S0 22.0-22.9 against 23.3-23.7 on three seeds; the
     # 32x64 protocol level on normals over three seeds (30.8 against 31.0), better albedo, R's colour kept,
-    # speckle 0.3-0.4x the truth's against 1.5x; the reflection map 1-4 worse
+    # speckle 0.3-0.4x the truth's against 1.5x; the reflection map 1-4 worse. At the cpu budget (seeds 21 and
+    # 22, the report): normals 26.3 / 26.5 against 28.9 / 27.1, 9.4 deg better than the per-pixel prior on both
+    # (docs/normals_from_shading.md "The cpu budget with D_M on the reflection map")
     adv_m_on: str = "reflection"
     # Not in the paper: R1 gradient penalty on D_M (Mescheder et al. 2018), gamma / 2 x the squared
     # gradient of its logits at the real maps M_s: a D_M whose verdict cannot turn on pixel-level
