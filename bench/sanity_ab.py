@@ -59,7 +59,7 @@ def main() -> None:
     for item in args.runs:
         label, _, path = item.partition("=")
         if path.endswith(".jsonl") and Path(path).is_file():
-            rows = [r for r in map(json.loads, Path(path).read_text().splitlines()) if "probe/normal_deg" in r]
+            rows = [r for r in map(json.loads, filter(str.strip, Path(path).read_text().splitlines())) if "probe/normal_deg" in r]
         elif not path or not (Path(path) / "stats.jsonl").exists():
             sys.exit(f"{item}: expected LABEL=RUN_DIR with a stats.jsonl, or LABEL=ROWS.jsonl")
         else:
@@ -73,15 +73,13 @@ def main() -> None:
     summary = {}
     for label, path, rows in runs:
         f = row_figures(rows)
-        if path.is_file():  # a reference curve: already committed, nothing to copy
-            f["seed"] = rows[-1].get("seed", "-")
-            summary[label] = f
-            lines.append(_line(label, f))
-            continue
-        opts = json.loads((path / "training_options.json").read_text())
-        f["seed"] = opts["config"]["run"]["seed"]
+        reference = path.is_file()  # a committed curve: nothing of it is copied
+        f["seed"] = (rows[-1].get("seed", "-") if reference
+                     else json.loads((path / "training_options.json").read_text())["config"]["run"]["seed"])
         summary[label] = f
         lines.append(_line(label, f))
+        if reference:
+            continue
         with open(args.out / f"{label}_probe.jsonl", "w") as fh:
             for r in rows:
                 fh.write(json.dumps({k: v for k, v in r.items() if k == "step" or k.startswith("probe")}) + "\n")
