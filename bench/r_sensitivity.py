@@ -1,0 +1,139 @@
+"""Why the shader R's input sensitivity reads below 1: R, its lighting, or H's maps?
+
+On car pixels the shader R is analytic (SH shading of the normals x albedo + gain x reflection), so
+its input sensitivity on the probe (`train.probe.input_sensitivity`) depends only on the lighting it
+renders under: by default the mean of the bank of lightings fitted to real images *through H's
+maps*. This script renders the probe's true intrinsics under other lightings and measures H's
+albedo level, to say where the shortfall comes from:
+
+- `bank_mean`: as the probe measures it (the bank's mean lighting);
+- `own_fit`: each probe image's own lighting, fitted by least squares with its true maps;
+- `probe_mean_fit`: one lighting for every sample, the mean of those fits;
+- the ambient (SH band 0) of the bank, of the fits through H's maps and of the fits through the
+  true maps, on the same probe images;
+- H's albedo level (mean linear albedo on the car, per channel) on the run's real images against
+  the training intrinsics' level, and what a per-channel correction by that ratio (training data
+  only, no ground truth) does to the probe's albedo L1 and to R's sensitivity.
+
+    python bench/r_sensitivity.py out/cpu21/runs/full --data out/cpu21/data --out r_sensitivity_s21.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from blender_gen.conversions import to_network  # noqa: E402
+from blender_gen.dataset import INTRINSIC_LAYERS, open_dataset  # noqa: E402
+from train.colour import srgb_decode, srgb_encode  # noqa: E402
+from train.data import cover_crop  # noqa: E402
+from train.inference import load_run_checkpoint  # noqa: E402
+from train.losses import object_mask  # noqa: E402
+from train.probe import input_sensitivity, load_probe  # noqa: E402
+from train.shading import fit_lighting  # noqa: E402
+
+
+def _lin(x: torch.Tensor) -> torch.Tensor:
+    return srgb_decode((x + 1) / 2)
+
+
+def _level(maps: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+    """(3,) mean linear albedo over the masked pixels of (n, 9, h, w) network-space stacks."""
+    return (_lin(maps[:, 3:6]) * on).sum((0, 2, 3)) / on.sum().clamp_min(1)
+
+
+def _intrinsics(root: Path, h: int, w: int, every: int) -> torch.Tensor:
+    ds = open_dataset(root)
+    out = []
+    for i in range(0, len(ds), every):
+        layers = ds.load(i, list(INTRINSIC_LAYERS))
+        st = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], -1)
+        out.append(cover_crop(torch.from_numpy(np.ascontiguousarray(st)).permute(2, 0, 1).contiguous(), h, w))
+    return torch.stack(out)
+
+
+@torch.no_grad()
+def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> dict | None:
+    """The figures above for one run; None where R has no filled lighting bank (nothing to measure)."""
+    cfg, model, step, _ = load_run_checkpoint(run)
+    R = model.R
+    if getattr(R, "bank", None) is None or int(R.bank_filled) == 0:
+        return None
+    h, w = cfg.data.height, cfg.data.width
+    probe = load_probe(data / "eval", h, w)
+    M, I, on = probe.maps, probe.images, probe.masks[:, 0] >= 0.5
+    n = len(M)
+    bank = R.bank[:int(R.bank_filled)]
+
+    def sens(light: torch.Tensor | None) -> float:
+        return input_sensitivity(R(M, light), I, on)
+
+    lf, gf = fit_lighting(I, M[:, 0:3], M[:, 3:6], M[:, 6:9], on.unsqueeze(1))
+    own = torch.cat([lf, gf.unsqueeze(-1)], -1)
+    H = model.decompose(I)
+    lh, _ = fit_lighting(I, H[:, 0:3], H[:, 3:6], H[:, 6:9], on.unsqueeze(1))
+
+    # H's albedo level on the training real images against the training intrinsics'
+    real = load_probe(data / "real", h, w, limit=real_limit)
+    h_real = torch.cat([model.decompose(real.images[i:i + 16]) for i in range(0, len(real.images), 16)])
+    train = _intrinsics(data / "intrinsics", h, w, every)
+    k = _level(train, object_mask(train)) / _level(h_real, object_mask(h_real))
+    a_cal = srgb_encode((_lin(H[:, 3:6]) * k.view(1, 3, 1, 1)).clamp(0, 1)) * 2 - 1
+    cal_bank = bank.clone()
+    cal_bank[..., :9] /= k.view(1, 3, 1)
+
+    def l1(pred: torch.Tensor) -> float:
+        return float(((pred - M[:, 3:6]).abs().mean(1) * 127.5)[on].mean())
+
+    r3 = lambda t: [round(float(v), 3) for v in t]  # noqa: E731
+    return {
+        "run": str(run), "step": step, "weights": model.weights, "bank_size": int(R.bank_filled),
+        "sensitivity": {
+            "bank_mean": round(sens(None), 3),
+            "own_fit": round(sens(own), 3),
+            "probe_mean_fit": round(sens(own.mean(0, keepdim=True).expand(n, -1, -1)), 3),
+            "bank_mean_corrected": round(sens(cal_bank.mean(0, keepdim=True).expand(n, -1, -1)), 3),
+        },
+        "ambient_sh0": {"bank": r3(bank[..., 0].mean(0)), "probe_fit_through_H": r3(lh[..., 0].mean(0)),
+                        "probe_fit_through_truth": r3(lf[..., 0].mean(0))},
+        "albedo_level": {"training_intrinsics": r3(_level(train, object_mask(train))),
+                         "H_on_real_images": r3(_level(h_real, object_mask(h_real))),
+                         "correction": r3(k)},
+        "probe_albedo_l1": {"H": round(l1(H[:, 3:6]), 2), "H_corrected": round(l1(a_cal), 2)},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders of shader-R runs")
+    ap.add_argument("--data", type=Path, nargs="+", required=True,
+                    help="the reproduce data folder of each run (with eval/, real/, intrinsics/)")
+    ap.add_argument("--out", type=Path, help="JSON file for the figures")
+    args = ap.parse_args()
+    if len(args.data) not in (1, len(args.runs)):
+        raise SystemExit(f"--data: one folder, or one per run ({len(args.runs)}); got {len(args.data)}")
+    torch.set_num_threads(1)
+    rows = []
+    for i, run in enumerate(args.runs):
+        data = args.data[i if len(args.data) > 1 else 0]
+        for sub in ("eval", "real", "intrinsics"):
+            if not (data / sub).is_dir():
+                raise SystemExit(f"--data {data}: no {sub}/ folder (expected a reproduce data folder)")
+        row = measure(run, data)
+        if row is None:
+            print(f"{run}: skipped, R has no filled lighting bank (not a shader run, or no decomposition cycle)")
+            continue
+        rows.append(row)
+        print(json.dumps(row))
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
