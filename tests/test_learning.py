@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import math
+
 import pytest
 import torch
 
@@ -201,6 +203,32 @@ def test_chroma_loss_ignores_brightness_and_sees_a_hue_change():
         assert model.loss_terms(model.forward_all(m, i)).get("G/chroma", (None,))[0] == weight, sets
     paper = build_model(load_config("paper", tiny_overrides()))
     assert "G/chroma" not in paper.loss_terms(paper.forward_all(m, i))
+
+
+def test_albedo_level_term_moves_a_too_bright_population_and_is_off_by_default():
+    from train.losses import albedo_level, level_bias_loss
+
+    mask = torch.ones(1, 1, 4, 4)
+    level = albedo_level(torch.zeros(1, 3, 4, 4), mask)  # mid-grey in network space
+    assert torch.allclose(level, torch.full((3,), 0.2140), atol=1e-3)  # sRGB 0.5 in linear light
+    # a population too bright in green: the batch's green is pushed down, red and blue untouched
+    x = level.clone().requires_grad_(True)
+    loss = level_bias_loss(x, torch.tensor([0.2, 0.3, 0.2]), torch.tensor([0.2, 0.2, 0.2]))
+    assert float(loss.detach()) == pytest.approx(math.log(1.5) ** 2, rel=1e-4)
+    loss.backward()
+    assert x.grad[1] > 0 and x.grad[0] == 0 and x.grad[2] == 0
+    # in the model: absent by default (no buffer, old checkpoints load), a running level when on
+    m, i = torch.rand(2, 9, 32, 64) * 2 - 1, torch.rand(2, 3, 32, 64) * 2 - 1
+    m[:, 0:3] = torch.nn.functional.normalize(m[:, 0:3], dim=1)
+    off = build_model(load_config("cpu-small", tiny_overrides()))
+    assert off.albedo_levels is None and "albedo_levels" not in off.state_dict()
+    assert "G/albedo_level" not in off.loss_terms(off.forward_all(m, i))
+    on = build_model(load_config("cpu-small", tiny_overrides() + ["loss.w_albedo_level=3"])).train()
+    w, v = on.loss_terms(on.forward_all(m, i))["G/albedo_level"]
+    assert w == 3.0 and torch.isfinite(v) and "albedo_levels" in on.state_dict()
+    assert float(on.albedo_levels[1].min()) > 0  # the training intrinsics' level was recorded
+    v.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in on.H.parameters())
 
 
 def test_cache_gives_the_decoded_tensors_and_rebuilds_when_the_data_changes(data, tmp_path):

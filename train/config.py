@@ -192,6 +192,15 @@ class LossConfig:
     # (40.7 / 40.2 against 33.9 / 32.9 at step 1500, docs/normals_from_shading.md), so it stays 0.
     w_shading_ren: float = 3.0
     w_shading_dec: float = 0.0
+    # Not in the paper: the albedo-lighting scale. With D_M on the reflection map only nothing pins
+    # the level of H's albedo, and the lightings fitted through it are off by the same factor (H's
+    # albedo 10-30% too bright in green and blue at the cpu budget, docs/normals_from_shading.md "Why
+    # R's input sensitivity reads 0.8"). > 0: the running mean (per channel, linear, on the car) of
+    # H's albedo on real images is held at the training intrinsics' running mean; each batch is
+    # moved by the population's bias, not toward the mean, so cars keep their own paint. 0 = the paper
+    # and the default: at 3 the level was met, but H washed out the paint (protocol screen albedo
+    # 57.4 / 55.9 against 43.4 / 40.3, normals level, R's sensitivity lower; same doc).
+    w_albedo_level: float = 0.0
 
 
 @dataclass
@@ -442,7 +451,7 @@ def validate(cfg: Config) -> Config:
     _at_least(cfg, 0, "run.seed", "run.probe_every", "data.workers", "model.r_downsample", "model.r_blocks", "model.r_local_enhancers",
               "model.h_downsample", "model.h_blocks", "cyclegan.n_down", "cyclegan.n_blocks", "cyclegan.pool",
               "munit.n_down", "munit.n_res", "munit.style_down", "optim.decay_start", "optim.weight_decay", "data.cache_gb", "loss.adv_m_from",
-              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "loss.r1_m", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
+              "loss.w_ren", "loss.w_dec", "loss.w_norm", "loss.w_adv", "loss.w_adv_m", "loss.w_adv_rec", "loss.w_chroma", "loss.w_shading_ren", "loss.w_shading_dec", "loss.w_albedo_level", "loss.r1_m", "model.shader_residual", "model.lighting_bank", "loss.normal_threshold", "loss.cycle_noise",
               "cyclegan.w_cycle", "cyclegan.w_adv", "munit.w_adv", "munit.w_recon_x", "munit.w_recon_s",
               "munit.w_recon_c", "munit.w_cyc")
     if not (0 < o.lr <= 1):

@@ -4,6 +4,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .colour import srgb_decode
+
 
 def gan_loss(logits: list[torch.Tensor], real: bool, kind: str, reduce: str = "sum") -> torch.Tensor:
     """Multi-scale GAN loss, summed over scales as pix2pixHD and MUNIT do (each scale is a
@@ -78,3 +80,18 @@ def finish_logs(total: torch.Tensor, logs: dict[str, torch.Tensor], prefix: str)
 def discriminator_terms(disc, real: torch.Tensor, fake: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     """GAN losses of a discriminator on real data (target real) and on detached fakes."""
     return gan_loss(disc(real), True, kind), gan_loss(disc(fake.detach()), False, kind)
+
+
+def albedo_level(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(3,) mean linear albedo over the masked pixels of (n, 3, h, w) network-space albedo."""
+    lin = srgb_decode((albedo.float() + 1) * 0.5)
+    return (lin * mask).sum(dim=(0, 2, 3)) / mask.sum().clamp_min(1)
+
+
+def level_bias_loss(level: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Its value: the squared log bias of a running (3,) level against the target's, summed over
+    channels. Its gradient moves this batch's `level` by that bias (d/d log level = 2 x bias), so a
+    population that is too bright is darkened without pulling each sample toward the mean."""
+    bias = (running.clamp_min(1e-4).log() - target.clamp_min(1e-4).log()).detach()
+    log_level = level.clamp_min(1e-4).log()
+    return (bias ** 2).sum() + (2 * bias * (log_level - log_level.detach())).sum()

@@ -17,7 +17,8 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import chroma_loss, cycle_loss, finish_logs, gan_loss, normal_length_loss, object_mask
+from .losses import (albedo_level, chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, normal_length_loss,
+                     object_mask)
 from .networks import CHANNELS, Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
 from .shading import fit_lighting, shading_loss
 
@@ -77,6 +78,9 @@ class IntrinsicAutoencoder(nn.Module):
         self.D_M = MultiscaleDiscriminator(9 + 3 * self.cond_m, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.normal_output = m.normal_output
         self.step = 0  # training steps done, set by the training loop; only loss.adv_m_from reads it
+        # running albedo levels (loss.w_albedo_level): H's on real images, the training intrinsics';
+        # None (not part of the weights) when the term is off, so older checkpoints load as before
+        self.register_buffer("albedo_levels", torch.zeros(2, 3) if cfg.loss.w_albedo_level else None)
         init_weights(self, "normal")  # pix2pixHD / CycleGAN: N(0, 0.02)
 
     # -------------------------------------------------------------- groups for optimisers
@@ -218,6 +222,8 @@ class IntrinsicAutoencoder(nn.Module):
             h = out["fake_M"]
             terms["G/shading_dec"] = (lc.w_shading_dec, shading_loss(out["I_r"], h[:, 0:3], h[:, 3:6], h[:, 6:9],
                                                                      object_mask(h.detach()), gain=self._gain()))
+        if lc.w_albedo_level and "fake_M" in out and self.albedo_levels is not None:
+            terms["G/albedo_level"] = (lc.w_albedo_level, self._albedo_level(out["fake_M"], out["M_s"]))
         mean = lc.gan_reduce == "mean"
         for dname, (_, fakes) in self.discriminator_inputs(out).items():
             logits = self._judge(dname, torch.cat([self._beside(dname, f, out, out[f]) for f in fakes]))
@@ -229,6 +235,17 @@ class IntrinsicAutoencoder(nn.Module):
                 w = lc.w_adv * scale * rel[k] / norm
                 terms[f"G/adv_{dname}_{f}"] = (w, gan_loss([c[k] for c in chunks], True, lc.gan, lc.gan_reduce))
         return terms
+
+    def _albedo_level(self, fake_m: torch.Tensor, m_s: torch.Tensor) -> torch.Tensor:
+        """loss.w_albedo_level: H's albedo level on real images (its own car mask) against the training
+        intrinsics', both as running means updated while training (about 100 steps' memory)."""
+        level = albedo_level(fake_m[:, 3:6], object_mask(fake_m.detach()))
+        if self.training:
+            with torch.no_grad():
+                new = torch.stack([level.detach(), albedo_level(m_s[:, 3:6], object_mask(m_s))])
+                first = not bool(self.albedo_levels.any())
+                self.albedo_levels.copy_(new if first else 0.99 * self.albedo_levels + 0.01 * new)
+        return level_bias_loss(level, self.albedo_levels[0], self.albedo_levels[1])
 
     def _gain(self) -> torch.Tensor | None:
         """The shared reflection gain the shading fits hold fixed (model.shader_gain), else None."""
