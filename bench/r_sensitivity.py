@@ -24,17 +24,14 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from blender_gen.conversions import to_network  # noqa: E402
-from blender_gen.dataset import INTRINSIC_LAYERS, open_dataset  # noqa: E402
 from train.colour import srgb_decode, srgb_encode  # noqa: E402
-from train.data import cover_crop  # noqa: E402
+from train.data import IntrinsicsData  # noqa: E402
 from train.inference import load_run_checkpoint  # noqa: E402
-from train.losses import object_mask  # noqa: E402
+from train.losses import linear_mean, object_mask  # noqa: E402
 from train.probe import input_sensitivity, load_probe  # noqa: E402
 from train.shading import fit_lighting  # noqa: E402
 
@@ -43,19 +40,9 @@ def _lin(x: torch.Tensor) -> torch.Tensor:
     return srgb_decode((x + 1) / 2)
 
 
-def _level(maps: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
-    """(3,) mean linear albedo over the masked pixels of (n, 9, h, w) network-space stacks."""
-    return (_lin(maps[:, 3:6]) * on).sum((0, 2, 3)) / on.sum().clamp_min(1)
-
-
-def _intrinsics(root: Path, h: int, w: int, every: int) -> torch.Tensor:
-    ds = open_dataset(root)
-    out = []
-    for i in range(0, len(ds), every):
-        layers = ds.load(i, list(INTRINSIC_LAYERS))
-        st = np.concatenate([to_network(k, layers[k]) for k in INTRINSIC_LAYERS], -1)
-        out.append(cover_crop(torch.from_numpy(np.ascontiguousarray(st)).permute(2, 0, 1).contiguous(), h, w))
-    return torch.stack(out)
+def _albedo_level(maps: torch.Tensor) -> torch.Tensor:
+    """(3,) mean linear albedo on the object pixels of (n, 9, h, w) network-space stacks."""
+    return linear_mean(maps[:, 3:6], object_mask(maps))
 
 
 @torch.no_grad()
@@ -82,8 +69,10 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
     # H's albedo level on the training real images against the training intrinsics'
     real = load_probe(data / "real", h, w, limit=real_limit)
     h_real = torch.cat([model.decompose(real.images[i:i + 16]) for i in range(0, len(real.images), 16)])
-    train = _intrinsics(data / "intrinsics", h, w, every)
-    k = _level(train, object_mask(train)) / _level(h_real, object_mask(h_real))
+    ds = IntrinsicsData(data / "intrinsics", h, w)
+    train = torch.stack([ds[(i, False)] for i in range(0, len(ds), every)])
+    level_train, level_h = _albedo_level(train), _albedo_level(h_real)
+    k = level_train / level_h
     a_cal = srgb_encode((_lin(H[:, 3:6]) * k.view(1, 3, 1, 1)).clamp(0, 1)) * 2 - 1
     cal_bank = bank.clone()
     cal_bank[..., :9] /= k.view(1, 3, 1)
@@ -102,8 +91,7 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
         },
         "ambient_sh0": {"bank": r3(bank[..., 0].mean(0)), "probe_fit_through_H": r3(lh[..., 0].mean(0)),
                         "probe_fit_through_truth": r3(lf[..., 0].mean(0))},
-        "albedo_level": {"training_intrinsics": r3(_level(train, object_mask(train))),
-                         "H_on_real_images": r3(_level(h_real, object_mask(h_real))),
+        "albedo_level": {"training_intrinsics": r3(level_train), "H_on_real_images": r3(level_h),
                          "correction": r3(k)},
         "probe_albedo_l1": {"H": round(l1(H[:, 3:6]), 2), "H_corrected": round(l1(a_cal), 2)},
     }

@@ -3,14 +3,13 @@ gradient diagnosis, the sanity sets and the environment background of intrinsics
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-import math
-
 import pytest
 import torch
 
@@ -206,10 +205,10 @@ def test_chroma_loss_ignores_brightness_and_sees_a_hue_change():
 
 
 def test_albedo_level_term_moves_a_too_bright_population_and_is_off_by_default():
-    from train.losses import albedo_level, level_bias_loss
+    from train.losses import level_bias_loss, linear_mean
 
     mask = torch.ones(1, 1, 4, 4)
-    level = albedo_level(torch.zeros(1, 3, 4, 4), mask)  # mid-grey in network space
+    level = linear_mean(torch.zeros(1, 3, 4, 4), mask)  # mid-grey in network space
     assert torch.allclose(level, torch.full((3,), 0.2140), atol=1e-3)  # sRGB 0.5 in linear light
     # a population too bright in green: the batch's green is pushed down, red and blue untouched
     x = level.clone().requires_grad_(True)

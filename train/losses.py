@@ -82,9 +82,10 @@ def discriminator_terms(disc, real: torch.Tensor, fake: torch.Tensor, kind: str)
     return gan_loss(disc(real), True, kind), gan_loss(disc(fake.detach()), False, kind)
 
 
-def albedo_level(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """(3,) mean linear albedo over the masked pixels of (n, 3, h, w) network-space albedo."""
-    lin = srgb_decode((albedo.float() + 1) * 0.5)
+def linear_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(3,) per-channel mean in linear light over the masked pixels of (n, 3, h, w) network-space
+    colour maps (an albedo or reflection level)."""
+    lin = srgb_decode((x.float() + 1) * 0.5)
     return (lin * mask).sum(dim=(0, 2, 3)) / mask.sum().clamp_min(1)
 
 

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import (albedo_level, chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, normal_length_loss,
+from .losses import (chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, linear_mean, normal_length_loss,
                      object_mask)
 from .networks import CHANNELS, Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
 from .shading import fit_lighting, shading_loss
@@ -239,10 +239,10 @@ class IntrinsicAutoencoder(nn.Module):
     def _albedo_level(self, fake_m: torch.Tensor, m_s: torch.Tensor) -> torch.Tensor:
         """loss.w_albedo_level: H's albedo level on real images (its own car mask) against the training
         intrinsics', both as running means updated while training (about 100 steps' memory)."""
-        level = albedo_level(fake_m[:, 3:6], object_mask(fake_m.detach()))
+        level = linear_mean(fake_m[:, 3:6], object_mask(fake_m.detach()))
         if self.training:
             with torch.no_grad():
-                new = torch.stack([level.detach(), albedo_level(m_s[:, 3:6], object_mask(m_s))])
+                new = torch.stack([level.detach(), linear_mean(m_s[:, 3:6], object_mask(m_s))])
                 first = not bool(self.albedo_levels.any())
                 self.albedo_levels.copy_(new if first else 0.99 * self.albedo_levels + 0.01 * new)
         return level_bias_loss(level, self.albedo_levels[0], self.albedo_levels[1])

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .losses import object_mask
+from .losses import linear_mean, object_mask
 from .colour import srgb_decode, srgb_encode
 
 PROBE_PREFIX = "probe/"
@@ -86,11 +86,8 @@ def training_means(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean albedo and reflection over object pixels (|normal| > 0.5) of network-space stacks,
     averaged in linear light and returned in network space: the constant predictor's values."""
     on = object_mask(maps)
-    out = []
-    for sl in (slice(3, 6), slice(6, 9)):
-        mean = (srgb_decode((maps[:, sl] + 1) * 0.5) * on).sum(dim=(0, 2, 3)) / on.sum().clamp_min(1)
-        out.append(srgb_encode(mean) * 2 - 1)
-    return out[0], out[1]
+    albedo, reflection = (srgb_encode(linear_mean(maps[:, sl], on)) * 2 - 1 for sl in (slice(3, 6), slice(6, 9)))
+    return albedo, reflection
 
 
 def pixel_prior(maps: torch.Tensor) -> torch.Tensor:
