@@ -397,6 +397,34 @@ def test_a_run_trained_before_these_settings_loads_as_it_trained():
     assert new.model.renderer == Config().model.renderer and new.run.ema_decay == Config().run.ema_decay
 
 
+def test_bank_level_images_scales_the_banked_lightings_to_the_real_images_car_level():
+    """model.bank_level "images": lightings fitted too dim (as through a too-bright albedo) are given
+    out at the real images' level, for R(M_s) and for inference; "fit" keeps them and saves no levels."""
+    from train.colour import srgb_encode
+
+    stacks, masks = _blobs(3)
+    light = torch.zeros(3, 9)
+    light[:, 0], light[:, 3] = 2.5, 0.8
+    gain = torch.full((3,), 0.4)
+    image = srgb_encode(render_sh(stacks[:, 0:3], stacks[:, 3:6], stacks[:, 6:9], light, gain)) * 2 - 1
+    dim = torch.cat([light * 0.5, (gain * 0.5).unsqueeze(-1)], dim=-1)  # (3, 10): half as bright
+    for level, factor in (("fit", 1.0), ("images", 2.0)):
+        cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.lighting_bank=4",
+                                                           f"model.bank_level={level}"])
+        model = build_model(cfg).train()
+        r = model.R
+        assert ("R.levels" in model.state_dict()) == (level == "images")
+        r.push(dim.expand(4, 3, 10))
+        for _ in range(2):  # H's maps stand in as the true ones: its car mask is the images'
+            model._update_levels(stacks, r.draw(3), image, stacks)
+        assert torch.allclose(r.level_scale(), torch.full((3,), factor), rtol=1e-3)
+        mean_light, mean_gain = r.default_lighting()
+        assert torch.allclose(mean_light, factor * dim[:, :9], rtol=1e-3) and torch.allclose(mean_gain, factor * dim[:, 9], rtol=1e-3)
+        on = masks.expand(-1, 3, -1, -1) > 0
+        err = (r(stacks, r.draw(3)) - image).abs()[on].mean()
+        assert (err < 0.01) == (level == "images")
+
+
 def test_the_shader_learns_the_lighting_of_shaded_images_by_gradient():
     stacks, masks = _blobs(4, seed=7)
     target = shade_network(stacks)  # S0's light: ambient 0.3 and a light from above-right

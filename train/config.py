@@ -73,6 +73,13 @@ class ModelConfig:
     # global appearance code of 30 numbers that cannot carry the intrinsics); "global": one learned lighting
     shader_lighting: str = "per_image"
     lighting_bank: int = 256
+    # The level of the bank's lightings. "fit": as fitted. The fits go through H's maps, whose albedo
+    # level nothing pins (A x L), so they came out too dim (R's input sensitivity 0.79-0.83 at the cpu
+    # budget, docs/normals_from_shading.md "Why R's input sensitivity reads 0.8"). "images": every
+    # lighting drawn for R(M_s), and the bank's mean used by inference, is scaled per colour channel so
+    # that R(M_s) is on average as bright on the car as the real images are on H's car mask (running
+    # means, about 100 steps' memory): the first moment D_I would ask for if the bank had gradients.
+    bank_level: str = "fit"
     # "per_image": each shading fit also fits a reflection gain; "shared": one learned gain per colour
     # channel for every image, starting at shader_gain_start. Fitted per image, the gain lets H put a
     # real image into its reflection map (its fit then beats the truth's on PBR images: residual 0.17
@@ -434,6 +441,7 @@ def validate(cfg: Config) -> Config:
     _choice("model.shader_lighting", m.shader_lighting, ("per_image", "global"))
     _choice("model.shader_gain", m.shader_gain, ("per_image", "shared"))
     _choice("model.shader_background", m.shader_background, ("gain", "environment"))
+    _choice("model.bank_level", m.bank_level, ("fit", "images"))
     if not 0.001 <= m.shader_gain_start <= 10:  # NaN fails too
         raise ConfigError(f"model.shader_gain_start: expected a gain in [0.001, 10], got {m.shader_gain_start!r}")
     if not 0 <= cfg.run.ema_decay < 1:
@@ -527,7 +535,7 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
 # (its training_options.json lacks the key): an older run folder resumes and loads as it trained.
 LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywhere", "model.shader_lighting": "global",
                  "model.shader_background": "gain", "loss.w_shading_ren": 0.0, "loss.w_shading_dec": 0.0,
-                 "run.ema_decay": 0.0}
+                 "run.ema_decay": 0.0, "model.bank_level": "fit"}
 
 
 def differing_sections(a: Config, b: Config) -> list[str]:

@@ -20,7 +20,7 @@ from .config import Config
 from .losses import (chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, linear_mean, normal_length_loss,
                      object_mask)
 from .networks import CHANNELS, Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
-from .shading import fit_lighting, shading_loss
+from .shading import fit_lighting, render_sh, shading_loss
 
 
 
@@ -68,7 +68,7 @@ class IntrinsicAutoencoder(nn.Module):
                                     m.shader_residual, m.shader_residual_on,
                                     m.lighting_bank if m.shader_lighting == "per_image" else 0,
                                     m.shader_gain_start if m.shader_gain == "shared" else 0.0,
-                                    m.shader_background)
+                                    m.shader_background, m.bank_level)
         else:
             self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks,
                                        m.r_local_enhancers, m.norm)
@@ -121,14 +121,30 @@ class IntrinsicAutoencoder(nn.Module):
             light = self.R.draw(len(m_s)) if per_image and self.training else None
             out["fake_I"] = self.R(m_s, light) if self.shader else self.render(m_s)
             out["rec_M"] = self.H(self._into_cycle(out["fake_I"]))  # H(R(M_s))
+        else:
+            light = None
         if lc.decomposition_cycle or everything:
             out["fake_M"] = self.H(i_r)  # H(I_r)
+            if light is not None:  # model.bank_level: the real images' car level beside R(M_s)'s
+                self._update_levels(m_s, light, i_r, out["fake_M"])
             light, fitted = self.real_lighting(i_r, out["fake_M"]) if per_image else (None, None)
             rec_in = self._into_cycle(out["fake_M"])
             out["rec_I"] = self.R(rec_in, light) if self.shader else self.render(rec_in)  # R(H(I_r))
             if light is not None and self.training:
                 self.R.push(light[fitted])
         return out
+
+    @torch.no_grad()
+    def _update_levels(self, m_s: torch.Tensor, drawn: torch.Tensor, i_r: torch.Tensor, fake_m: torch.Tensor) -> None:
+        """Running car levels for model.bank_level "images": the real images' on H's car mask, and
+        R(M_s)'s (its shaded car, linear) under the drawn lightings as fitted (the scale taken out)."""
+        if self.R.levels is None:
+            return
+        fitted = drawn / self.R.level_scale().view(1, 3, 1)
+        lin = render_sh(m_s[:, 0:3], m_s[:, 3:6], m_s[:, 6:9], fitted[..., :9], fitted[..., 9])
+        car = object_mask(m_s)
+        render_level = (lin * car).sum(dim=(0, 2, 3)) / car.sum().clamp_min(1)
+        self.R.update_levels(linear_mean(i_r, object_mask(fake_m.detach())), render_level)
 
     @torch.no_grad()
     def real_lighting(self, i_r: torch.Tensor, fake_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

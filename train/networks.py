@@ -203,7 +203,7 @@ class ShaderRenderer(nn.Module):
 
     def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
                  residual: float, residual_on: str = "background", bank: int = 0, shared_gain: float = 0.0,
-                 background: str = "gain"):
+                 background: str = "gain", bank_level: str = "fit"):
         super().__init__()
         self.inputs = inputs
         self.background = background
@@ -214,6 +214,9 @@ class ShaderRenderer(nn.Module):
         for name, value in (("bank", torch.zeros(bank, 3, 10)), ("bank_filled", torch.zeros((), dtype=torch.long)),
                             ("bank_pos", torch.zeros((), dtype=torch.long))):
             self.register_buffer(name, value if bank else None)  # None: not part of the weights
+        # bank_level "images": running (3,) car levels of the real images and of R(M_s) under the bank's
+        # lightings as fitted; their ratio scales every lighting the bank gives out (`level_scale`)
+        self.register_buffer("levels", torch.zeros(2, 3) if bank and bank_level == "images" else None)
         light = torch.zeros(3, 9)
         light[:, 0] = 0.55 / _C0  # ambient
         light[:, 2] = 0.45 / _C1  # a light from the camera's side
@@ -238,18 +241,37 @@ class ShaderRenderer(nn.Module):
             self.bank_filled.fill_(min(size, int(self.bank_filled) + 1))
 
     def draw(self, n: int) -> torch.Tensor | None:
-        """(n, 3, 10) lightings drawn from the bank with the global RNG; None while it is empty."""
+        """(n, 3, 10) lightings drawn from the bank with the global RNG (at the bank's level,
+        `level_scale`); None while it is empty."""
         filled = 0 if self.bank is None else int(self.bank_filled)
         if filled == 0:
             return None
-        return self.bank[torch.randint(filled, (n,)).to(self.bank.device)]
+        return self.bank[torch.randint(filled, (n,)).to(self.bank.device)] * self.level_scale().view(1, 3, 1)
+
+    def level_scale(self) -> torch.Tensor:
+        """(3,) per-channel factor on the bank's lightings (model.bank_level): the real images' running
+        car level over R(M_s)'s under the lightings as fitted; 1 as fitted or before the first update."""
+        ones = torch.ones(3, device=self.light.device)
+        if self.levels is None or not bool(self.levels[1].gt(0).all()):
+            return ones
+        return (self.levels[0] / self.levels[1]).clamp(0.1, 10)
+
+    @torch.no_grad()
+    def update_levels(self, real: torch.Tensor, render_fitted: torch.Tensor, momentum: float = 0.99) -> None:
+        """Fold this batch's (3,) linear car levels into the running ones: the real images' and R(M_s)'s
+        under the drawn lightings as fitted (unscaled). No-op unless model.bank_level is "images"."""
+        if self.levels is None:
+            return
+        new = torch.stack([real, render_fitted]).to(self.levels.dtype)
+        first = not bool(self.levels.any())
+        self.levels.copy_(new if first else momentum * self.levels + (1 - momentum) * new)
 
     def default_lighting(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(3, 9) lighting and (3,) gain for a render without a given lighting: the bank's mean where
         it has entries (the typical real lighting), else the learned global one."""
         filled = 0 if self.bank is None else int(self.bank_filled)
         if filled:
-            mean = self.bank[:filled].mean(0)
+            mean = self.bank[:filled].mean(0) * self.level_scale().view(3, 1)
             return mean[:, :9], mean[:, 9]
         return self.light, self.gain
 
