@@ -13,7 +13,11 @@ albedo level, to say where the shortfall comes from:
   true maps, on the same probe images;
 - H's albedo level (mean linear albedo on the car, per channel) on the run's real images against
   the training intrinsics' level, and what a per-channel correction by that ratio (training data
-  only, no ground truth) does to the probe's albedo L1 and to R's sensitivity.
+  only, no ground truth) does to the probe's albedo L1 and to R's sensitivity;
+- the split between shading and reflection: the lightings fitted through H's maps on the real
+  images again with the reflection gain held at the probe's true-map fits' mean (`refit_gain_fixed`),
+  and the overall level: the real images' mean linear colour on H's car mask against R's renders
+  of the training intrinsics under lightings drawn from the bank (`car_level`).
 
     python bench/r_sensitivity.py out/cpu21/runs/full --data out/cpu21/data --out r_sensitivity_s21.json
 """
@@ -33,7 +37,7 @@ from train.data import IntrinsicsData  # noqa: E402
 from train.inference import load_run_checkpoint  # noqa: E402
 from train.losses import linear_mean, object_mask  # noqa: E402
 from train.probe import input_sensitivity, load_probe  # noqa: E402
-from train.shading import fit_lighting  # noqa: E402
+from train.shading import fit_lighting, render_sh  # noqa: E402
 
 
 def _lin(x: torch.Tensor) -> torch.Tensor:
@@ -77,6 +81,16 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
     cal_bank = bank.clone()
     cal_bank[..., :9] /= k.view(1, 3, 1)
 
+    # the shading / reflection split: H's fits on the real images with the truth's reflection gain
+    h_mask = object_mask(h_real)
+    lr, gr = fit_lighting(real.images, h_real[:, 0:3], h_real[:, 3:6], h_real[:, 6:9], h_mask, gain=gf.mean(0))
+    refit = torch.cat([lr, gr.unsqueeze(-1)], -1).clamp(-10, 10).mean(0, keepdim=True)
+    # the overall level: R of the training intrinsics under drawn bank lightings against the real images
+    drawn = bank[torch.randint(len(bank), (len(train),), generator=torch.Generator().manual_seed(0))]
+    car = object_mask(train)
+    lin = render_sh(train[:, 0:3], train[:, 3:6], train[:, 6:9], drawn[..., :9], drawn[..., 9])
+    render_level = (lin * car).sum(dim=(0, 2, 3)) / car.sum().clamp_min(1)
+
     def l1(pred: torch.Tensor) -> float:
         return float(((pred - M[:, 3:6]).abs().mean(1) * 127.5)[on].mean())
 
@@ -88,7 +102,12 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
             "own_fit": round(sens(own), 3),
             "probe_mean_fit": round(sens(own.mean(0, keepdim=True).expand(n, -1, -1)), 3),
             "bank_mean_corrected": round(sens(cal_bank.mean(0, keepdim=True).expand(n, -1, -1)), 3),
+            "refit_gain_fixed": round(sens(refit.expand(n, -1, -1)), 3),
         },
+        "reflection_gain": {"bank": r3(bank[..., 9].mean(0)), "probe_fit_through_truth": r3(gf.mean(0))},
+        "refit_gain_fixed_ambient": r3(refit[0, :, 0]),
+        "car_level": {"real_images_on_H_mask": r3(linear_mean(real.images, h_mask)),
+                      "R_of_training_intrinsics_under_bank": r3(render_level)},
         "ambient_sh0": {"bank": r3(bank[..., 0].mean(0)), "probe_fit_through_H": r3(lh[..., 0].mean(0)),
                         "probe_fit_through_truth": r3(lf[..., 0].mean(0))},
         "albedo_level": {"training_intrinsics": r3(level_train), "H_on_real_images": r3(level_h),

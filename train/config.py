@@ -73,12 +73,12 @@ class ModelConfig:
     # global appearance code of 30 numbers that cannot carry the intrinsics); "global": one learned lighting
     shader_lighting: str = "per_image"
     lighting_bank: int = 256
-    # The level of the bank's lightings. "fit": as fitted. The fits go through H's maps, whose albedo
-    # level nothing pins (A x L), so they came out too dim (R's input sensitivity 0.79-0.83 at the cpu
-    # budget, docs/normals_from_shading.md "Why R's input sensitivity reads 0.8"). "images": every
-    # lighting drawn for R(M_s), and the bank's mean used by inference, is scaled per colour channel so
-    # that R(M_s) is on average as bright on the car as the real images are on H's car mask (running
-    # means, about 100 steps' memory): the first moment D_I would ask for if the bank had gradients.
+    # The level of the bank's lightings. "fit" (the default): as fitted. "images": every lighting drawn
+    # for R(M_s), and the bank's mean used by inference, scaled per colour channel so that R(M_s) is on
+    # average as bright on the car as the real images are on H's car mask (running means, about 100
+    # steps' memory). Measured on the protocol screen: normals level, albedo and R's input sensitivity
+    # worse (0.71 / 0.68 against 0.82 / 0.82); the level was right already, the bank's split between
+    # shading and reflection gain is what is off (docs/normals_from_shading.md).
     bank_level: str = "fit"
     # "per_image": each shading fit also fits a reflection gain; "shared": one learned gain per colour
     # channel for every image, starting at shader_gain_start. Fitted per image, the gain lets H put a
