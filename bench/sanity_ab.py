@@ -10,7 +10,8 @@ and raw normals, the raw curve's step-to-step swing over its last 4 probes, the 
 albedo, reflection, speckle, R's input sensitivity and colour correlation), `curves.png` (moving
 average solid, raw faint, the bars dashed) and per run its probe rows (`LABEL_probe.jsonl`) and
 `LABEL_training_options.json`, so that every figure quoted from the table can be traced and redrawn.
-A label's seed is read from its training options.
+A label's seed is read from its training options. `--until STEP` reads every run up to that step
+only: a run stopped early (to be resumed) beside complete ones, compared at the same step.
 """
 from __future__ import annotations
 
@@ -54,6 +55,8 @@ def main() -> None:
     ap.add_argument("--title", default="probe normals")
     ap.add_argument("--relative-to", type=Path, default=None,
                     help="write paths under this folder (the reproduce --out) as OUT/... in the copied options")
+    ap.add_argument("--until", type=int, default=None, metavar="STEP",
+                    help="use the probe rows up to this step only (compare runs at one step)")
     args = ap.parse_args()
     runs = []
     for item in args.runs:
@@ -64,8 +67,11 @@ def main() -> None:
             sys.exit(f"{item}: expected LABEL=RUN_DIR with a stats.jsonl, or LABEL=ROWS.jsonl")
         else:
             rows = probe_rows(Path(path))
+        if args.until is not None:
+            rows = [r for r in rows if r["step"] <= args.until]
         if not rows:
-            sys.exit(f"{path}: no probe rows (train with --probe)")
+            sys.exit(f"{path}: no probe rows" + (f" up to step {args.until}" if args.until is not None
+                                                  else " (train with --probe)"))
         runs.append((label, Path(path), rows))
     args.out.mkdir(parents=True, exist_ok=True)
     lines = ["| run | seed | step | normals, moving avg. (raw; swing) | constant / prior | albedo L1 | reflection L1 | "

@@ -56,6 +56,11 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| ref_s21 | 21 | 750 | 36.0 (37.0; 4.5) | 40.0 / 35.0 |" in (out / "table.md").read_text()
     assert (out / "curves.png").stat().st_size > 1000 and not (out / "ref_s21_probe.jsonl").exists()
+    # --until: every run read up to one step (a run stopped early beside complete ones)
+    until = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), "--until", "500", f"ref_s21={rows}"],
+                           cwd=ROOT, capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert until.returncode == 0, until.stderr[-2000:]
+    assert "| ref_s21 | 21 | 500 | 38.5 (" in (out / "table.md").read_text()
     bad = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"x={tmp_path / 'none'}"],
                          cwd=ROOT, capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert bad.returncode != 0 and "expected LABEL=RUN_DIR" in bad.stderr
