@@ -84,7 +84,10 @@ class ModelConfig:
     # channel for every image, starting at shader_gain_start. Fitted per image, the gain lets H put a
     # real image into its reflection map (its fit then beats the truth's on PBR images: residual 0.17
     # against 0.30 on S1, gains 0.21-0.34 against the truth's 0.13); shared, reflection improved but
-    # normals did not (S1 seed 0 5.9 deg worse at step 1375, seed 1 level: docs/normals_from_shading.md)
+    # normals did not (S1 seed 0 5.9 deg worse at step 1375, seed 1 level: docs/normals_from_shading.md).
+    # Under today's objective at the cpu budget (seeds 21, 22) shared is better on albedo (30.7 / 26.7
+    # against 34.5 / 33.0), KID and R's input sensitivity (1.11 / 1.14), level on normals, but its gain
+    # falls to 0.02 (no reflections drawn) and S0/S1 were not run with it: not yet the default.
     shader_gain: str = "per_image"
     shader_gain_start: float = 0.25
     # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
