@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from train.colour import srgb_decode, srgb_encode  # noqa: E402
 from train.data import IntrinsicsData  # noqa: E402
 from train.inference import load_run_checkpoint  # noqa: E402
-from train.losses import linear_mean, object_mask  # noqa: E402
+from train.losses import linear_mean, masked_mean, object_mask  # noqa: E402
 from train.probe import input_sensitivity, load_probe  # noqa: E402
 from train.shading import fit_lighting, render_sh  # noqa: E402
 
@@ -89,7 +89,6 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
     drawn = bank[torch.randint(len(bank), (len(train),), generator=torch.Generator().manual_seed(0))]
     car = object_mask(train)
     lin = render_sh(train[:, 0:3], train[:, 3:6], train[:, 6:9], drawn[..., :9], drawn[..., 9])
-    render_level = (lin * car).sum(dim=(0, 2, 3)) / car.sum().clamp_min(1)
 
     def l1(pred: torch.Tensor) -> float:
         return float(((pred - M[:, 3:6]).abs().mean(1) * 127.5)[on].mean())
@@ -107,7 +106,7 @@ def measure(run: Path, data: Path, every: int = 10, real_limit: int = 200) -> di
         "reflection_gain": {"bank": r3(bank[..., 9].mean(0)), "probe_fit_through_truth": r3(gf.mean(0))},
         "refit_gain_fixed_ambient": r3(refit[0, :, 0]),
         "car_level": {"real_images_on_H_mask": r3(linear_mean(real.images, h_mask)),
-                      "R_of_training_intrinsics_under_bank": r3(render_level)},
+                      "R_of_training_intrinsics_under_bank": r3(masked_mean(lin, car))},
         "ambient_sh0": {"bank": r3(bank[..., 0].mean(0)), "probe_fit_through_H": r3(lh[..., 0].mean(0)),
                         "probe_fit_through_truth": r3(lf[..., 0].mean(0))},
         "albedo_level": {"training_intrinsics": r3(level_train), "H_on_real_images": r3(level_h),

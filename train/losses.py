@@ -82,11 +82,22 @@ def discriminator_terms(disc, real: torch.Tensor, fake: torch.Tensor, kind: str)
     return gan_loss(disc(real), True, kind), gan_loss(disc(fake.detach()), False, kind)
 
 
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(c,) per-channel mean of (n, c, h, w) x over the pixels of an (n, 1, h, w) mask."""
+    return (x * mask).sum(dim=(0, 2, 3)) / mask.sum().clamp_min(1)
+
+
 def linear_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(3,) per-channel mean in linear light over the masked pixels of (n, 3, h, w) network-space
     colour maps (an albedo or reflection level)."""
-    lin = srgb_decode((x.float() + 1) * 0.5)
-    return (lin * mask).sum(dim=(0, 2, 3)) / mask.sum().clamp_min(1)
+    return masked_mean(srgb_decode((x.float() + 1) * 0.5), mask)
+
+
+@torch.no_grad()
+def update_running(running: torch.Tensor, new: torch.Tensor, momentum: float = 0.99) -> None:
+    """Fold `new` into a running-mean buffer in place; a buffer still all zero takes `new` as it is."""
+    new = new.to(running.dtype)
+    running.copy_(new if not bool(running.any()) else momentum * running + (1 - momentum) * new)
 
 
 def level_bias_loss(level: torch.Tensor, running: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

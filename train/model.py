@@ -17,8 +17,8 @@ import torch
 from torch import nn
 
 from .config import Config
-from .losses import (chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, linear_mean, normal_length_loss,
-                     object_mask)
+from .losses import (chroma_loss, cycle_loss, finish_logs, gan_loss, level_bias_loss, linear_mean, masked_mean,
+                     normal_length_loss, object_mask, update_running)
 from .networks import CHANNELS, Decomposer, MultiscaleDiscriminator, ShaderRenderer, init_weights, make_renderer_net
 from .shading import fit_lighting, render_sh, shading_loss
 
@@ -143,8 +143,7 @@ class IntrinsicAutoencoder(nn.Module):
         fitted = drawn / self.R.level_scale().view(1, 3, 1)
         lin = render_sh(m_s[:, 0:3], m_s[:, 3:6], m_s[:, 6:9], fitted[..., :9], fitted[..., 9])
         car = object_mask(m_s)
-        render_level = (lin * car).sum(dim=(0, 2, 3)) / car.sum().clamp_min(1)
-        self.R.update_levels(linear_mean(i_r, object_mask(fake_m.detach())), render_level)
+        self.R.update_levels(linear_mean(i_r, object_mask(fake_m.detach())), masked_mean(lin, car))
 
     @torch.no_grad()
     def real_lighting(self, i_r: torch.Tensor, fake_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -257,10 +256,7 @@ class IntrinsicAutoencoder(nn.Module):
         intrinsics', both as running means updated while training (about 100 steps' memory)."""
         level = linear_mean(fake_m[:, 3:6], object_mask(fake_m.detach()))
         if self.training:
-            with torch.no_grad():
-                new = torch.stack([level.detach(), linear_mean(m_s[:, 3:6], object_mask(m_s))])
-                first = not bool(self.albedo_levels.any())
-                self.albedo_levels.copy_(new if first else 0.99 * self.albedo_levels + 0.01 * new)
+            update_running(self.albedo_levels, torch.stack([level.detach(), linear_mean(m_s[:, 3:6], object_mask(m_s))]))
         return level_bias_loss(level, self.albedo_levels[0], self.albedo_levels[1])
 
     def _gain(self) -> torch.Tensor | None:

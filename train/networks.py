@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import srgb_encode
-from .losses import object_mask
+from .losses import object_mask, update_running
 from .shading import _C0, _C1, linear, render_sh
 
 # Adam moves a parameter by about lr per step; the shared gain's log moves this many times faster
@@ -260,11 +260,8 @@ class ShaderRenderer(nn.Module):
     def update_levels(self, real: torch.Tensor, render_fitted: torch.Tensor, momentum: float = 0.99) -> None:
         """Fold this batch's (3,) linear car levels into the running ones: the real images' and R(M_s)'s
         under the drawn lightings as fitted (unscaled). No-op unless model.bank_level is "images"."""
-        if self.levels is None:
-            return
-        new = torch.stack([real, render_fitted]).to(self.levels.dtype)
-        first = not bool(self.levels.any())
-        self.levels.copy_(new if first else momentum * self.levels + (1 - momentum) * new)
+        if self.levels is not None:
+            update_running(self.levels, torch.stack([real, render_fitted]), momentum)
 
     def default_lighting(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(3, 9) lighting and (3,) gain for a render without a given lighting: the bank's mean where
