@@ -2,7 +2,7 @@
 
 Each variant runs in its own process (a full generator + discriminator step of the Intrinsic
 Autoencoder on synthetic tensors) and prints its measured it/s; nothing is asserted.
-Usage: python bench/bench_cpu_speed.py [--config cpu-small] [--size 64x128] [--batch 4]
+Usage: python bench/bench_cpu_speed.py [--config cpu-small] [--size 128x64] [--batch 4]
 """
 from __future__ import annotations
 
@@ -39,13 +39,13 @@ def one(config: str, h: int, w: int, batch: int, steps: int, variant: dict) -> d
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default="cpu-small")
-    ap.add_argument("--size", default="64x128", help="HEIGHTxWIDTH")
+    ap.add_argument("--size", default="128x64", help="WIDTHxHEIGHT, as every size option")
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    h, w = (int(v) for v in args.size.lower().split("x"))
+    w, h = (int(v) for v in args.size.lower().split("x"))
     if args.one:
         print(json.dumps(one(args.config, h, w, args.batch, args.steps, VARIANTS[args.one])))
         return
