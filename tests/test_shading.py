@@ -363,7 +363,8 @@ def test_lighting_fitted_to_an_image_renders_it_and_fills_the_bank():
     on = masks.expand(-1, 3, -1, -1) > 0
     assert (again - image).abs()[on].mean() < 0.02
     # the model: R(H(I_r)) is lit by the fit, R(M_s) by a drawn real lighting, the bank keeps the last ones
-    cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.lighting_bank=4"])
+    cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.lighting_bank=4",
+                                                       "model.shader_gain=per_image"])
     model = build_model(cfg).train()
     r = model.R
     assert int(r.bank_filled) == 0 and r.draw(2) is None
@@ -388,10 +389,12 @@ def test_a_run_trained_before_these_settings_loads_as_it_trained():
 
     old = Config().to_dict()
     for section, name in (("model", "renderer"), ("model", "shader_residual_on"), ("model", "shader_lighting"),
-                          ("loss", "w_shading_ren"), ("loss", "w_shading_dec"), ("run", "ema_decay")):
+                          ("model", "shader_gain"), ("loss", "w_shading_ren"), ("loss", "w_shading_dec"),
+                          ("run", "ema_decay")):
         del old[section][name]
     cfg = config_from_dict(old)
     assert (cfg.model.renderer, cfg.loss.w_shading_ren, cfg.loss.w_shading_dec, cfg.run.ema_decay) == ("net", 0, 0, 0)
+    assert cfg.model.shader_gain == "per_image"  # the gain was fitted per image before the option
     # a run that names them keeps its values
     new = config_from_dict(Config().to_dict())
     assert new.model.renderer == Config().model.renderer and new.run.ema_decay == Config().run.ema_decay
@@ -410,7 +413,7 @@ def test_bank_level_images_scales_the_banked_lightings_to_the_real_images_car_le
     dim = torch.cat([light * 0.5, (gain * 0.5).unsqueeze(-1)], dim=-1)  # (3, 10): half as bright
     for level, factor in (("fit", 1.0), ("images", 2.0)):
         cfg = load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.lighting_bank=4",
-                                                           f"model.bank_level={level}"])
+                                                           f"model.bank_level={level}", "model.shader_gain=per_image"])
         model = build_model(cfg).train()
         r = model.R
         assert ("R.levels" in model.state_dict()) == (level == "images")
@@ -491,7 +494,7 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
     out = model.R(stacks)
     out.mean().backward()
     assert model.R.log_gain.grad is not None and model.R.log_gain.grad.abs().sum() > 0
-    plain = build_model(load_config("cpu-small", tiny_overrides() + ["model.renderer=shader"]))
+    plain = build_model(load_config("cpu-small", tiny_overrides() + ["model.renderer=shader", "model.shader_gain=per_image"]))
     assert plain.R.shared_gain() is None and "R.log_gain" not in plain.state_dict()  # older checkpoints still load
     with pytest.raises(ConfigError, match="model.shader_gain_start"):
         load_config("cpu-small", tiny_overrides() + ["model.shader_gain_start=nan"])

@@ -80,15 +80,14 @@ class ModelConfig:
     # worse (0.71 / 0.68 against 0.82 / 0.82); the level was right already, the bank's split between
     # shading and reflection gain is what is off (docs/normals_from_shading.md).
     bank_level: str = "fit"
-    # "per_image": each shading fit also fits a reflection gain; "shared": one learned gain per colour
-    # channel for every image, starting at shader_gain_start. Fitted per image, the gain lets H put a
-    # real image into its reflection map (its fit then beats the truth's on PBR images: residual 0.17
-    # against 0.30 on S1, gains 0.21-0.34 against the truth's 0.13); shared, reflection improved but
-    # normals did not (S1 seed 0 5.9 deg worse at step 1375, seed 1 level: docs/normals_from_shading.md).
-    # Under today's objective at the cpu budget (seeds 21, 22) shared is better on albedo (30.7 / 26.7
-    # against 34.5 / 33.0), KID and R's input sensitivity (1.11 / 1.14), level on normals, but its gain
-    # falls to 0.02 (no reflections drawn) and S0/S1 were not run with it: not yet the default.
-    shader_gain: str = "per_image"
+    # "shared": one learned gain per colour channel for every image, starting at shader_gain_start;
+    # "per_image": each shading fit also fits a reflection gain (the default before). Fitted per image,
+    # the gain let H put a real image into its reflection map, and the bank's lightings put too much
+    # of each car into the gain (R's input sensitivity 0.83 / 0.79 at the cpu budget). Shared, at the
+    # cpu budget (seeds 21, 22): albedo 30.7 / 26.7 against 34.5 / 33.0, KID lower, R's sensitivity
+    # 1.11 / 1.14, normals level; on S0 / S1 level on three seeds (docs/normals_from_shading.md). Its
+    # learned gain falls to 0.02 at the cpu budget: R draws the car without reflections.
+    shader_gain: str = "shared"
     shader_gain_start: float = 0.25
     # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
     # reflection gain fitted on the car scaling the environment too; "environment" = lin(F) as the
@@ -538,7 +537,8 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
 # (its training_options.json lacks the key): an older run folder resumes and loads as it trained.
 LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywhere", "model.shader_lighting": "global",
                  "model.shader_background": "gain", "loss.w_shading_ren": 0.0, "loss.w_shading_dec": 0.0,
-                 "run.ema_decay": 0.0, "model.bank_level": "fit"}
+                 "run.ema_decay": 0.0, "model.bank_level": "fit",
+                 "model.shader_gain": "per_image"}
 
 
 def differing_sections(a: Config, b: Config) -> list[str]:
