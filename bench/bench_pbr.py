@@ -53,7 +53,8 @@ def main() -> None:
             img = r.render_layers(i)[0]["rgb"]
             times.append(time.perf_counter() - t)
             errs.append(float(np.sqrt(np.mean((linear_to_srgb(img) - ref[i]) ** 2))))
-        results.append({"samples": spp, "noise_threshold": threshold, "s_per_frame": float(np.mean(times)), "rms_srgb": float(np.mean(errs))})
+        results.append({"samples": spp, "noise_threshold": threshold, "s_per_frame": float(np.mean(times)),
+                        "rms_srgb": float(np.mean(errs))})
         print(f"pbr {w}x{h} {spp:>3} samples/pixel (adaptive to {threshold:g}, OIDN): {np.mean(times):.2f} s/frame, "
               f"RMS error vs {args.reference} spp {np.mean(errs):.4f} (sRGB 0..1)", flush=True)
     print(json.dumps({"reference_s_per_frame": ref_s, "results": results}, indent=2))
