@@ -256,7 +256,8 @@ class IntrinsicAutoencoder(nn.Module):
         intrinsics', both as running means updated while training (about 100 steps' memory)."""
         level = linear_mean(fake_m[:, 3:6], object_mask(fake_m.detach()))
         if self.training:
-            update_running(self.albedo_levels, torch.stack([level.detach(), linear_mean(m_s[:, 3:6], object_mask(m_s))]))
+            train_level = linear_mean(m_s[:, 3:6], object_mask(m_s))
+            update_running(self.albedo_levels, torch.stack([level.detach(), train_level]))
         return level_bias_loss(level, self.albedo_levels[0], self.albedo_levels[1])
 
     def _gain(self) -> torch.Tensor | None:
