@@ -578,8 +578,10 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
 body {{ font-family: sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
 th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: center; font-size: 13px; }}
-td img {{ width: 256px; display: block; }}  /* renders at training size shown as large as the inputs */
-figure img {{ max-width: 100%; }}
+td img {{ width: 100%; max-width: 256px; display: block; margin: auto; }}  /* training-size renders shown as large as the inputs */
+table.grid {{ width: 100%; table-layout: fixed; }}  /* many runs: tiles shrink, nothing scrolls */
+table.grid th.label {{ width: 9em; }}
+body > img, figure img {{ max-width: 100%; }}
 figure {{ margin: 0 0 12px; }}
 h3 {{ margin-bottom: 0.2em; }}
 .warning {{ background: #fff3cd; border: 1px solid #e0b000; padding: 6px 10px; }}
@@ -591,7 +593,8 @@ window.addEventListener("load", () => {{
   const imgs = Array.from(document.images);
   const broken = imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length;
   const s = document.getElementById("selfcheck");
-  s.textContent = `images=${{imgs.length}} broken=${{broken}} errors=${{window.__errors.length}}`;
+  const overflow = Math.max(0, document.documentElement.scrollWidth - window.innerWidth);  // sideways scrolling
+  s.textContent = `images=${{imgs.length}} broken=${{broken}} errors=${{window.__errors.length}} overflow=${{overflow}}`;
 }});
 </script></head><body>
 <h1>Intrinsic Autoencoder evaluation</h1>
@@ -607,9 +610,9 @@ photos, full training), not as a like-for-like comparison.</p>
 <p>{html.escape(TABLE3_NOTE)}</p>
 {table(*_table3(entries))}
 <h2>Deferred neural rendering: the same intrinsics through each run's R</h2>
-<table><thead><tr>{ren_head}</tr></thead><tbody>{''.join(ren_rows)}</tbody></table>
+<table class="grid" style="max-width: {272 * (3 + len(renderers))}px"><thead><tr>{ren_head}</tr></thead><tbody>{''.join(ren_rows)}</tbody></table>
 <h2>Intrinsic decomposition: each run's H next to the ground truth</h2>
-<table><thead><tr><th></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
+<table class="grid" style="max-width: {9 * 16 + 272 * 4}px"><thead><tr><th class="label"></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
 <tbody>{''.join(dec_rows)}</tbody></table>
 {reference_html}
 {gallery_html}
