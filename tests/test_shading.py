@@ -498,6 +498,15 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
     assert plain.R.shared_gain() is None and "R.log_gain" not in plain.state_dict()  # older checkpoints still load
     with pytest.raises(ConfigError, match="model.shader_gain_start"):
         load_config("cpu-small", tiny_overrides() + ["model.shader_gain_start=nan"])
+    # a floor: the gain starts where asked and never falls below the floor, however far it is pushed
+    floored = build_model(load_config("cpu-small", tiny_overrides() + ["model.renderer=shader",
+                                                                      "model.shader_gain_min=0.1"]))
+    assert torch.allclose(floored.R.shared_gain(), torch.full((3,), 0.25))
+    with torch.no_grad():
+        floored.R.log_gain.fill_(-100.0)
+    assert torch.allclose(floored.R.shared_gain(), torch.full((3,), 0.1))
+    with pytest.raises(ConfigError, match="model.shader_gain_min"):
+        load_config("cpu-small", tiny_overrides() + ["model.shader_gain_min=0.3"])  # above the start
 
 
 def test_the_shading_budget_takes_a_cycles_image_apart():

@@ -90,6 +90,9 @@ class ModelConfig:
     # learned gain falls to 0.02 at the cpu budget: R draws the car without reflections.
     shader_gain: str = "shared"
     shader_gain_start: float = 0.25
+    # The shared gain's floor: the learned gain is this plus a positive part. 0 (the default) lets R
+    # draw the car without reflections, as it learns to at the cpu budget (0.02).
+    shader_gain_min: float = 0.0
     # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
     # reflection gain fitted on the car scaling the environment too; "environment" = lin(F) as the
     # intrinsics store it (the scene behind the car, drawn apart from the car's shading and gain).
@@ -447,6 +450,9 @@ def validate(cfg: Config) -> Config:
     _choice("model.bank_level", m.bank_level, ("fit", "images"))
     if not 0.001 <= m.shader_gain_start <= 10:  # NaN fails too
         raise ConfigError(f"model.shader_gain_start: expected a gain in [0.001, 10], got {m.shader_gain_start!r}")
+    if not 0 <= m.shader_gain_min < m.shader_gain_start:
+        raise ConfigError(f"model.shader_gain_min: expected a floor in [0, model.shader_gain_start = "
+                          f"{m.shader_gain_start}), got {m.shader_gain_min!r}")
     if not 0 <= cfg.run.ema_decay < 1:
         raise ConfigError(f"run.ema_decay: expected a value in [0, 1), got {cfg.run.ema_decay!r}")
     _choice("cyclegan.norm", cfg.cyclegan.norm, ("instance", "batch"))

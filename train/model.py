@@ -68,7 +68,7 @@ class IntrinsicAutoencoder(nn.Module):
                                     m.shader_residual, m.shader_residual_on,
                                     m.lighting_bank if m.shader_lighting == "per_image" else 0,
                                     m.shader_gain_start if m.shader_gain == "shared" else 0.0,
-                                    m.shader_background, m.bank_level)
+                                    m.shader_background, m.bank_level, m.shader_gain_min)
         else:
             self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks,
                                        m.r_local_enhancers, m.norm)

@@ -203,7 +203,7 @@ class ShaderRenderer(nn.Module):
 
     def __init__(self, inputs: list[str], ngf: int, n_down: int, n_blocks: int, local: int, norm: str,
                  residual: float, residual_on: str = "background", bank: int = 0, shared_gain: float = 0.0,
-                 background: str = "gain", bank_level: str = "fit"):
+                 background: str = "gain", bank_level: str = "fit", gain_min: float = 0.0):
         super().__init__()
         self.inputs = inputs
         self.background = background
@@ -224,12 +224,15 @@ class ShaderRenderer(nn.Module):
         self.gain = nn.Parameter(torch.full((3,), 0.5))
         self.net = make_renderer_net(3 * len(inputs) + 3, ngf, n_down, n_blocks, local, norm) if residual > 0 else None
         # one reflection gain per colour channel for every image (model.shader_gain = "shared"), learned
-        # in log space with a GAIN_LR_SCALE times larger step; absent (not a weight) when gains are fitted
-        self.log_gain = nn.Parameter(torch.full((3,), math.log(shared_gain) / GAIN_LR_SCALE)) if shared_gain else None
+        # in log space with a GAIN_LR_SCALE times larger step, above gain_min (model.shader_gain_min);
+        # absent (not a weight) when gains are fitted
+        self.gain_min = gain_min
+        self.log_gain = (nn.Parameter(torch.full((3,), math.log(shared_gain - gain_min) / GAIN_LR_SCALE))
+                         if shared_gain else None)
 
     def shared_gain(self) -> torch.Tensor | None:
         """(3,) the shared reflection gain, or None where each lighting carries its own."""
-        return None if self.log_gain is None else torch.exp(GAIN_LR_SCALE * self.log_gain)
+        return None if self.log_gain is None else self.gain_min + torch.exp(GAIN_LR_SCALE * self.log_gain)
 
     @torch.no_grad()
     def push(self, lighting: torch.Tensor) -> None:
