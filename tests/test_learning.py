@@ -107,6 +107,9 @@ def test_evaluate_probe_reports_every_figure_and_restores_train_mode():
                 "const_normal_deg", "const_albedo_l1", "const_reflection_l1", "render_l1", "r_sensitivity",
                 "r_colour_corr", "h_colour_corr"):
         assert np.isfinite(figs[f"probe/{key}"]), key
+    assert figs["probe/r_gain"] == pytest.approx(cfg.model.shader_gain_start)  # the shared gain, untrained
+    per_image = build_model(load_config("cpu-small", tiny_overrides() + ["model.shader_gain=per_image"]))
+    assert "probe/r_gain" not in evaluate_probe(per_image, p)
 
 
 def test_s0_shader_is_the_stated_formula():
