@@ -269,7 +269,7 @@ def probe_figure(rows: list[dict], title: str = ""):
     (faint), beside the two bars that use no image: the constant predictor (dashed) and the
     per-pixel prior (dash-dot), the stronger of which a decomposition has to beat; H's speckle
     (high-frequency energy over the truth's); normal correlations, R's input sensitivity and
-    colour correlation."""
+    colour correlation, and the shader R's shared reflection gain."""
     rows = [r for r in rows if f"{PROBE_PREFIX}normal_deg" in r]
     if not rows:
         return None
@@ -315,7 +315,10 @@ def probe_figure(rows: list[dict], title: str = ""):
     axes[3].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
     axes[3].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
     axes[3].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3")
-    axes[3].set_ylim(-0.2, 1.3)
+    if any(np.isfinite(series("r_gain"))):
+        axes[3].plot(steps, series("r_gain"), "--", label="R reflection gain", color="k", alpha=0.6)
+    top = np.nanmax([1.2, *series("r_sensitivity")])  # a renderer above 1 stays in view
+    axes[3].set_ylim(-0.2, top + 0.1)
     whats = ("H: normals (lower is better)", "H: albedo, reflection; R", "H: speckle", "agreement")
     for ax, what in zip(axes, whats):
         ax.set_xlabel("step")
