@@ -104,8 +104,9 @@ def main() -> None:
     fig, ax = plt.subplots(figsize=(8, 4))
     for k, (label, _, rows) in enumerate(runs):
         steps = [r["step"] for r in rows]
-        ax.plot(steps, [r["probe/normal_deg"] for r in rows], color=f"C{k % 10}", alpha=0.3, lw=0.8)
-        ax.plot(steps, [judged(r)[0] for r in rows], color=f"C{k % 10}", label=label)
+        color, style = f"C{k % 10}", ("-", "--", ":")[k // 10 % 3]  # more than ten runs: a line style apart
+        ax.plot(steps, [r["probe/normal_deg"] for r in rows], color=color, alpha=0.3, lw=0.8)
+        ax.plot(steps, [judged(r)[0] for r in rows], color=color, ls=style, label=label)
     last = runs[0][2][-1]
     ax.axhline(last["probe/const_normal_deg"], ls="--", color="gray", label="constant predictor")
     if "probe/prior_normal_deg" in last:
