@@ -578,7 +578,8 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
 body {{ font-family: sans-serif; margin: 2em; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
 th, td {{ border: 1px solid #ccc; padding: 4px 8px; text-align: center; font-size: 13px; }}
-td img {{ width: 100%; max-width: 256px; display: block; margin: auto; }}  /* training-size renders shown as large as the inputs */
+/* training-size renders shown as large as the inputs, smaller where many runs share the width */
+td img {{ width: 100%; max-width: 256px; display: block; margin: auto; }}
 table.grid {{ width: 100%; table-layout: fixed; }}  /* many runs: tiles shrink, nothing scrolls */
 table.grid th.label {{ width: 9em; }}
 body > img, figure img {{ max-width: 100%; }}
@@ -593,7 +594,7 @@ window.addEventListener("load", () => {{
   const imgs = Array.from(document.images);
   const broken = imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length;
   const s = document.getElementById("selfcheck");
-  const overflow = Math.max(0, document.documentElement.scrollWidth - window.innerWidth);  // sideways scrolling
+  const overflow = Math.max(0, document.documentElement.scrollWidth - window.innerWidth);  // scrolls sideways
   s.textContent = `images=${{imgs.length}} broken=${{broken}} errors=${{window.__errors.length}} overflow=${{overflow}}`;
 }});
 </script></head><body>
@@ -610,9 +611,11 @@ photos, full training), not as a like-for-like comparison.</p>
 <p>{html.escape(TABLE3_NOTE)}</p>
 {table(*_table3(entries))}
 <h2>Deferred neural rendering: the same intrinsics through each run's R</h2>
-<table class="grid" style="max-width: {272 * (3 + len(renderers))}px"><thead><tr>{ren_head}</tr></thead><tbody>{''.join(ren_rows)}</tbody></table>
+<table class="grid" style="max-width: {272 * (3 + len(renderers))}px"><thead><tr>{ren_head}</tr></thead>
+<tbody>{''.join(ren_rows)}</tbody></table>
 <h2>Intrinsic decomposition: each run's H next to the ground truth</h2>
-<table class="grid" style="max-width: {9 * 16 + 272 * 4}px"><thead><tr><th class="label"></th><th>image</th><th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
+<table class="grid" style="max-width: {9 * 16 + 272 * 4}px"><thead><tr><th class="label"></th><th>image</th>
+<th>normal</th><th>albedo</th><th>reflection</th></tr></thead>
 <tbody>{''.join(dec_rows)}</tbody></table>
 {reference_html}
 {gallery_html}
