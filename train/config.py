@@ -86,8 +86,8 @@ class ModelConfig:
     # of each car into the gain (R's input sensitivity 0.83 / 0.79 at the cpu budget). Shared, at the
     # cpu budget (seeds 21, 22): albedo 30.7 / 26.7 against 34.5 / 33.0, KID lower, R's sensitivity
     # 1.11 / 1.14, normals level; S0 / S1 pass on three seeds, level with per_image on the two paired
-    # seeds (docs/normals_from_shading.md). Its
-    # learned gain falls to 0.02 at the cpu budget: R draws the car without reflections.
+    # seeds (docs/normals_from_shading.md). Its learned gain falls to 0.02 at the cpu budget: R draws
+    # the car without reflections.
     shader_gain: str = "shared"
     shader_gain_start: float = 0.25
     # The shared gain's floor: the learned gain is this plus a positive part. 0 (the default) lets R

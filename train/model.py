@@ -232,11 +232,11 @@ class IntrinsicAutoencoder(nn.Module):
         if lc.w_shading_ren and "fake_I" in out:  # R shades by the normals it is given
             m = out["M_s"]
             terms["G/shading_ren"] = (lc.w_shading_ren, shading_loss(out["fake_I"], m[:, 0:3], m[:, 3:6], m[:, 6:9],
-                                                                     object_mask(m), gain=self._gain()))
+                                                                     object_mask(m), gain=self.shared_gain()))
         if lc.w_shading_dec and "fake_M" in out:  # H's normals explain the real image's shading
             h = out["fake_M"]
             terms["G/shading_dec"] = (lc.w_shading_dec, shading_loss(out["I_r"], h[:, 0:3], h[:, 3:6], h[:, 6:9],
-                                                                     object_mask(h.detach()), gain=self._gain()))
+                                                                     object_mask(h.detach()), gain=self.shared_gain()))
         if lc.w_albedo_level and "fake_M" in out and self.albedo_levels is not None:
             terms["G/albedo_level"] = (lc.w_albedo_level, self._albedo_level(out["fake_M"], out["M_s"]))
         mean = lc.gan_reduce == "mean"
@@ -260,8 +260,9 @@ class IntrinsicAutoencoder(nn.Module):
             update_running(self.albedo_levels, torch.stack([level.detach(), train_level]))
         return level_bias_loss(level, self.albedo_levels[0], self.albedo_levels[1])
 
-    def _gain(self) -> torch.Tensor | None:
-        """The shared reflection gain the shading fits hold fixed (model.shader_gain), else None."""
+    def shared_gain(self) -> torch.Tensor | None:
+        """(3,) the shader R's shared reflection gain, which the shading fits hold fixed
+        (model.shader_gain = "shared"); None for a fitted gain or the paper's R."""
         return self.R.shared_gain() if self.shader else None
 
     def _adv_weights(self, fakes: list[str]) -> list[float]:

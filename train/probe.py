@@ -194,8 +194,7 @@ def evaluate_probe(model, probe: ProbeSet, batch: int = 16, prefix: str = PROBE_
     out[f"{prefix}render_l1"] = float(_per_sample_mean(err, on).mean())
     out[f"{prefix}r_sensitivity"] = input_sensitivity(ren, probe.images, on)
     out[f"{prefix}r_colour_corr"] = colour_correlation(ren, probe.images, on)
-    gain_of = getattr(getattr(model, "R", None), "shared_gain", None)  # the shader R's learned gain
-    gain = gain_of() if callable(gain_of) else None
+    gain = model.shared_gain() if hasattr(model, "shared_gain") else None  # the baselines have none
     if gain is not None:
         out[f"{prefix}r_gain"] = float(gain.mean())
     # H: does its albedo follow each car's paint (1), or give every car one colour (0)?
