@@ -1,17 +1,19 @@
 """Probe curves at the paper's resolution (the `gpu` budget's networks) beside the `cpu` budget's.
 
   python bench/plot_gpu_budget.py --gpu results/gpu_budget \
-      --cpu results/cpu_chroma/chroma_s21_probe.jsonl results/cpu_chroma/chroma_s22_probe.jsonl \
-      --cpu-oracle results/cpu_new/s21/oracle_s21_probe.jsonl results/cpu_new/s22/oracle_s22_probe.jsonl \
+      --cpu results/cpu_shared_gain/shared_gain_s21_probe.jsonl results/cpu_shared_gain/shared_gain_s22_probe.jsonl \
+      --cpu-oracle results/cpu_default/oracle_s21.jsonl results/cpu_default/oracle_s22.jsonl \
       --out results/gpu_budget/curves.png
-GPU curves: bench/objective_sweep.py files (NAME_sSEED.jsonl, moving-average figures where present);
-CPU curves: `fit --probe` rows of the committed `cpu` comparison (raw weights: those runs predate the
-moving average). Steps are optimiser steps: batch 1 at 256x512 on the GPU, batch 4 at 64x128 on the CPU.
+GPU curves: bench/objective_sweep.py files (NAME_sSEED.jsonl); CPU curves: probe rows of the `cpu`
+comparison under the default (`fit --probe` or the sweep tool). Moving-average figures where a file
+has them, raw otherwise. Steps are optimiser steps: batch 1 at 256x512 on the GPU, batch 4 at 64x128
+on the CPU.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 PANELS = (("normal_deg", "normals (deg)"), ("albedo_l1", "albedo L1 (0-255)"), ("reflection_l1", "reflection L1 (0-255)"))
@@ -28,7 +30,7 @@ def value(r: dict, key: str) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gpu", type=Path, required=True, help="folder of the GPU runs' curves")
-    ap.add_argument("--cpu", type=Path, nargs="*", default=[], help="the cpu budget's full-model probe files")
+    ap.add_argument("--cpu", type=Path, nargs="*", default=[], help="the cpu budget's probe files of the default's full model")
     ap.add_argument("--cpu-oracle", type=Path, nargs="*", default=[], help="the cpu budget's oracle probe files")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args()
@@ -38,12 +40,16 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    colours = {"full": "C0", "oracle": "C2", "shader": "C3"}  # by the variant name's first word
-    curves = [(f, colours.get(f.stem.split("_")[0], "C1"), "-", f"GPU 256x512 {f.stem.rsplit('_s', 1)[0]}, seed {f.stem.rsplit('_s', 1)[1]}")
+    fig, axes = plt.subplots(1, 3, figsize=(17, 3.8))
+    colours = {"full": "C0", "oracle": "C2", "shader": "C3", "default": "C4"}  # by the variant name's first word
+    names = {"full": "previous defaults", "shader_nodec": "cycle-free shader (per-image gain, D_M on all maps)",
+             "default": "default", "oracle": "oracle"}
+    seed = lambda f: re.search(r"_s(\d+)", f.stem).group(1)  # noqa: E731
+    variant = lambda f: f.stem.rsplit("_s", 1)[0]  # noqa: E731
+    curves = [(f, colours.get(f.stem.split("_")[0], "C1"), "-", f"GPU 256x512 {names.get(variant(f), variant(f))}, seed {seed(f)}")
               for f in sorted(a.gpu.glob("*.jsonl"))]
-    curves += [(f, "C0", ":", f"CPU 64x128 full, {f.stem.split('_')[1]}") for f in a.cpu]
-    curves += [(f, "C2", ":", f"CPU 64x128 oracle, {f.stem.split('_')[1]}") for f in a.cpu_oracle]
+    curves += [(f, "C4", ":", f"CPU 64x128 default, seed {seed(f)}") for f in a.cpu]
+    curves += [(f, "C2", ":", f"CPU 64x128 oracle, seed {seed(f)}") for f in a.cpu_oracle]
     bars = None
     for f, colour, ls, label in curves:
         rs = [r for r in rows(f) if "probe/normal_deg" in r]
@@ -59,8 +65,8 @@ def main() -> None:
                 ax.axhline(bars[f"probe/prior_{key}"], ls="-.", color="gray", lw=1, label="per-pixel prior (GPU probe)")
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("optimiser step")
-    axes[0].legend(fontsize=6)
-    fig.tight_layout()
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="center right", fontsize=7)
+    fig.tight_layout(rect=(0, 0, 0.74, 1))
     fig.savefig(a.out, dpi=90)
     plt.close(fig)
     print(f"wrote {a.out}")

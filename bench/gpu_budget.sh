@@ -1,0 +1,26 @@
+#!/bin/bash
+# The `gpu` budget's curves on one GPU: the default objective on two seeds and the supervised oracle,
+# side by side (CUDA MPS when the machine has it), stopped after MINUTES with a last probe row each,
+# then H of the three runs on the first four probe images. PACK: `objective_sweep.py pack --setting
+# protocol --height 256 --width 512 ...` (docs/normals_from_shading.md, "The default at the paper's
+# resolution").
+#   bash bench/gpu_budget.sh PACK MINUTES OUT
+set -u
+PACK=$1; MIN=$2; O=$3
+PY=${PY:-python3}
+W=$(mktemp -d)
+mkdir -p "$O"
+export PYTHONUNBUFFERED=1
+if command -v nvidia-cuda-mps-control >/dev/null; then nvidia-cuda-mps-control -d && echo "CUDA MPS on"; fi
+G=(bench/objective_sweep.py grid --data "$PACK" --variants bench/variants_gpu.toml --steps 20000 --every 250 --batch 1
+   --decay 0.5 --minutes "$MIN" --out "$O" --save-dir "$W")
+$PY "${G[@]}" --only default --seeds 0 1 &
+$PY "${G[@]}" --only oracle --seeds 1 &
+wait
+P="model.renderer=shader,model.shader_gain=shared,model.shader_background=environment,loss.adv_m_on=reflection"
+R=()
+for s in 0 1; do [ -f "$W/default_s$s.safetensors" ] && R+=("seed $s=$W/default_s$s.safetensors,$P"); done
+[ -f "$W/oracle_s1.safetensors" ] && R+=("oracle=$W/oracle_s1.safetensors,model.kind=oracle")
+[ ${#R[@]} -gt 0 ] && $PY bench/objective_sweep.py picture --data "$PACK" --config paper --samples 4 --scale 1 \
+  --out "$O/default_h.jpg" "${R[@]}"
+rm -rf "$W"
