@@ -20,9 +20,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-# (preset, overrides) per model kind and width: "paper" widths and cpu-small-like narrow ones
+# (preset, overrides) per model kind and width: "paper" widths and cpu-small-like narrow ones. The
+# Intrinsic Autoencoder at the paper's widths trains the default objective (what `reproduce --budget gpu`
+# trains: the shader R, added in one()) or the paper's (its pix2pixHD R, "paper-objective").
 WIDTHS = {
     ("iae", "paper"): ("paper", []),
+    ("iae", "paper-objective"): ("paper", []),
     ("iae", "cpu-small"): ("cpu-small", []),
     ("cyclegan", "paper"): ("cyclegan", []),
     ("cyclegan", "cpu-small"): ("cyclegan", ["cyclegan.ngf=16", "cyclegan.n_blocks=4", "cyclegan.ndf=16"]),
@@ -38,7 +41,11 @@ def one(config: str, steps: int, h: int, w: int, kind: str, device: str = "cpu")
     from train.loop import build_optimisation, discriminator_step, generator_step
     from train.model import build_model
 
+    from train.config import objective_overrides
+
     preset, extra = WIDTHS[(kind, config)]
+    if (kind, config) == ("iae", "paper"):
+        extra = [*extra, *objective_overrides("paper", "default")]
     cfg = load_config(preset, [f"data.height={h}", f"data.width={w}", "data.batch_size=1", *extra])
     torch.manual_seed(0)
     model = build_model(cfg).to(device)
@@ -98,13 +105,16 @@ def main() -> None:
     gpu = args.device.startswith("cuda")
     results = []
     for kind in args.kinds:
-        for config, steps in (("paper", 50 if gpu else 3), ("cpu-small", 200 if gpu else 20)):
+        configs = (("paper", 50 if gpu else 3), ("cpu-small", 200 if gpu else 20))
+        if kind == "iae":
+            configs = (*configs, ("paper-objective", 50 if gpu else 3))
+        for config, steps in configs:
             proc = subprocess.run([sys.executable, __file__, "--one", config, str(steps), h, w, kind,
                                    "--device", args.device], capture_output=True, text=True, cwd=ROOT, check=True)
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             results.append(r)
             mem = f", peak GPU memory {r['peak_gpu_mib']:.0f} MiB" if gpu else ""
-            print(f"train {kind:8s} {config:9s} widths, {w}x{h} (width x height) batch 1 on {args.device}: {r['it_per_s']:.2f} it/s, "
+            print(f"train {kind:8s} {config:15s} widths, {w}x{h} (width x height) batch 1 on {args.device}: {r['it_per_s']:.2f} it/s, "
                   f"{r['params_M']:.1f} M parameters, peak RSS {r['peak_rss_mib']:.0f} MiB{mem}", flush=True)
     if args.kinds == ["iae"] and not gpu:
         r = loader(200, 2)

@@ -345,12 +345,16 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
               help="A config override for the Intrinsic Autoencoder's runs (the full model and its ablations; "
                    "the sanity settings: the full model), repeatable, to measure another objective on the same "
                    "data, e.g. --set loss.w_shading_ren=3. Use another --out for each objective.")
+@click.option("--objective", type=click.Choice(["default", "paper"]), default="default", show_default=True,
+              help="The Intrinsic Autoencoder's objective on the budget's networks: the measured defaults (the "
+                   "deferred shader R; docs/normals_from_shading.md), or the paper's (its pix2pixHD R and Eq. 7, "
+                   "the values of --config paper). --set values apply on top.")
 @click.option("--settings", default="S0,S1", show_default=True, help="Sanity settings only: which of S0, S1 to train.")
 @click.option("--seeds", "seeds", default=None, help="Sanity settings only: comma-separated training seeds "
               "(the budget's by default).")
 @click.option("--no-oracle", is_flag=True, help="Sanity settings only: skip the supervised oracle's runs.")
 def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars, car_rules, gallery, n_eval, n_fid,
-                  runs, jobs, threads, seed, run_seed, dry_run, overrides, settings, seeds, no_oracle) -> None:
+                  runs, jobs, threads, seed, run_seed, dry_run, objective, overrides, settings, seeds, no_oracle) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     import os
     import shutil
@@ -358,12 +362,16 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
 
     from .reproduce import BUDGETS, RUNS, Plan, reproduce
 
+
     if budget.startswith("sanity"):
         for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real)):
             if value:
                 raise click.BadParameter("the sanity settings use their own data", param_hint=flag)
         if data is not None:
             raise click.BadParameter("the sanity settings make their own data in OUT/data", param_hint="--data")
+        from train.config import objective_overrides
+
+        overrides = (*objective_overrides("cpu-small", objective), *overrides)  # the sanity runs' preset
         return _sanity_cmd(budget, out, steps, jobs, threads, seed, dry_run, overrides, settings, seeds, no_oracle)
     for flag, value in (("--seeds", seeds), ("--no-oracle", no_oracle),
                         ("--settings", settings != "S0,S1")):
@@ -413,13 +421,16 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         click.echo(f"--jobs {jobs}: capped at {min(cores, len(chosen))} ({len(chosen)} run(s), {cores} core(s))")
         jobs = min(cores, len(chosen))
     plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides))
+                run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides), objective)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     real_text = f"your photos in {photos} ({gallery} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
     click.echo(f"  training  {len(chosen)} runs ({', '.join(chosen)}), {b.steps} steps each at "
                f"{b.train[1]}x{b.train[0]} (width x height), batch {b.batch}")
+    extra = plan.objective_sets()
+    click.echo(f"  objective {objective}" + (f" on the {b.preset!r} preset's networks: {' '.join(extra)}" if extra else "")
+               + (f"; --set {' '.join(overrides)}" if overrides else ""))
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
                f"{jobs} training(s) at a time")
     click.echo(f"  output    {plan.out}" + (f" (data in {plan.data_dir})" if data is not None else ""))

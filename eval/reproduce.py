@@ -100,6 +100,13 @@ class Plan:
     photos: Path | None = None
     gallery: int = 8
     overrides: tuple[str, ...] = ()  # --set for the Intrinsic Autoencoder's runs (not the oracle or baselines)
+    objective: str = "default"  # the Intrinsic Autoencoder's objective: the measured defaults or the paper's
+
+    def objective_sets(self) -> list[str]:
+        """--set values that put the chosen objective on the budget's preset (widths and sizes stay)."""
+        from train.config import objective_overrides
+
+        return objective_overrides(self.budget.preset, self.objective)
 
     @property
     def data_dir(self) -> Path:
@@ -174,7 +181,7 @@ class Plan:
             sets = [x for x in sets if not x.startswith("optim.decay_start")]
         sets += list(extra)
         if preset == b.preset and name != "oracle":
-            sets += list(self.overrides)
+            sets += [*self.objective_sets(), *self.overrides]
         data = self.data_dir
         cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(self.real_dir),
                "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",

@@ -200,6 +200,33 @@ def test_an_objective_override_reaches_the_autoencoders_runs_only():
         plan.check_configs()  # every run's config resolves (the gpu budget's oracle from the paper preset too)
 
 
+def test_every_budget_trains_the_default_objective_unless_the_paper_s_is_asked_for():
+    """The `gpu` and `paper` budgets take the paper preset's widths; without the objective's values
+    they trained the paper's R and Eq. 7 instead of the measured default. `--objective paper` puts the
+    paper's objective on any budget's networks; the oracle and baselines are untouched either way."""
+    from eval.reproduce import RUNS
+    from train.config import Config, load_config
+
+    names = [n for n, _, _ in RUNS]
+    default, paper = Config(), load_config("paper")
+    for budget in ("cpu", "gpu", "paper"):
+        for objective, want in (("default", default), ("paper", paper)):
+            plan = Plan(BUDGETS[budget], Path("unused"), 0, 1, 1, 0, names, objective=objective)
+            for name in ("full", "no_dec"):
+                cfg = load_config(*plan._config_args(name))
+                assert cfg.model.renderer == want.model.renderer, (budget, objective, name)
+                assert cfg.loss.w_ren == want.loss.w_ren and cfg.loss.w_dec == want.loss.w_dec
+                assert cfg.loss.adv_m_on == want.loss.adv_m_on and cfg.loss.w_chroma == want.loss.w_chroma
+                # widths stay the budget's preset's
+                assert cfg.model.h_ngf == load_config(BUDGETS[budget].preset).model.h_ngf
+            assert load_config(*plan._config_args("no_dec")).loss.decomposition_cycle is False
+            for name in ("oracle", "cyclegan", "munit"):
+                assert not any(s.startswith(("loss.", "model.renderer")) for s in plan.fit_command(name)), name
+            plan.check_configs()
+    # the cpu budget's default runs get no extra values: their commands are those of runs trained before
+    assert Plan(BUDGETS["cpu"], Path("u"), 0, 1, 1, 0, ["full"]).objective_sets() == []
+
+
 def test_a_started_run_with_another_config_is_refused_before_the_plan_promises_anything(tmp_path, monkeypatch):
     """A rerun with other --set options over finished runs once said "nothing left to train" and
     then had its trainings refused; the plan now refuses first, naming the run folder."""

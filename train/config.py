@@ -543,6 +543,31 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     return validate(cfg)
 
 
+def _is_objective(key: str) -> bool:
+    """The training objective's settings: every loss weight and choice, and what R is (the paper's
+    network or the deferred shader, and the shader's settings); not the networks' widths."""
+    section, name = key.split(".")
+    return section == "loss" or (section == "model" and name.startswith(("renderer", "shader_", "lighting_", "bank_")))
+
+
+def objective_overrides(preset: str, objective: str) -> list[str]:
+    """`--set` values that give a preset's networks, data and schedule another objective:
+    "default" (the measured defaults, `Config()`) or "paper" (the `paper` preset's values, the
+    paper's R and Eq. 7). Only the values that differ from the preset's are listed."""
+    if objective not in ("default", "paper"):
+        raise ConfigError(f"objective {objective!r}: expected 'default' or 'paper'")
+    have = load_config(preset).to_dict()
+    want = (Config() if objective == "default" else load_config("paper")).to_dict()
+    out = []
+    for key in _all_keys(Config()):
+        if "." in key and _is_objective(key):
+            section, name = key.split(".")
+            if have[section][name] != want[section][name]:
+                value = want[section][name]
+                out.append(f"{key}={json.dumps(value) if not isinstance(value, str) else value}")
+    return out
+
+
 # Settings added after runs had been trained, with the value that reproduces what such a run did
 # (its training_options.json lacks the key): an older run folder resumes and loads as it trained.
 LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywhere", "model.shader_lighting": "global",
