@@ -451,11 +451,25 @@ def test_sigterm_saves_a_checkpoint_and_the_run_resumes_from_it(data, tmp_path):
     assert f"step {step + 2} (2 steps" in again.stdout
 
 
+def test_objective_puts_the_paper_s_objective_on_a_preset_s_networks(data, tmp_path):
+    """`fit --config cpu-small --objective paper` trains the paper's R and Eq. 7 at cpu-small widths;
+    --set still goes on top."""
+    import json
+
+    run = tmp_path / "r"
+    _run(*_fit_args(data, run, "--max-steps", "1", "--objective", "paper", "--set", "loss.w_ren=2"))
+    cfg = json.loads((run / "training_options.json").read_text())["config"]
+    assert cfg["model"]["renderer"] == "net" and cfg["loss"]["w_dec"] == 1.0 and cfg["loss"]["adv_m_on"] == "all"
+    assert cfg["loss"]["w_ren"] == 2.0 and cfg["model"]["h_blocks"] != 5  # --set on top; widths stay small
+
+
 def test_set_without_config_and_a_non_empty_out_are_one_line_errors(data, tmp_path):
     run = tmp_path / "r"
     _run(*_fit_args(data, run, "--max-steps", "3"))
     nocfg = _run("fit", "--run-dir", str(run), "--set", "optim.lr=1", check=False)
     assert nocfg.returncode == 2 and "--set needs --config" in nocfg.stderr and "Traceback" not in nocfg.stderr
+    noobj = _run("fit", "--run-dir", str(run), "--objective", "paper", check=False)
+    assert noobj.returncode == 2 and "--objective needs --config" in noobj.stderr
     intr, photos = data
     mine = tmp_path / "my_photos"
     mine.mkdir()

@@ -32,6 +32,9 @@ def main() -> None:
 @click.option("--real", type=click.Path(), default=None, help="PBR dataset or folder of JPG/PNG photos (I_r).")
 @click.option("--run-dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Run folder; an existing one is resumed where it stopped.")
+@click.option("--objective", type=click.Choice(["default", "paper"]), default=None,
+              help="With --config: put this objective on the preset's networks and sizes: the measured defaults "
+                   "(the deferred shader R) or the paper's (its pix2pixHD R and Eq. 7). Default: the preset's own.")
 @click.option("--set", "overrides", multiple=True, help="Override a config value: section.key=value (repeatable).")
 @click.option("--max-steps", type=click.IntRange(1), default=None,
               help="Stop after this many steps (default: optim.max_steps).")
@@ -45,8 +48,8 @@ def main() -> None:
               help="A new run starts from this run's newest weights (fine-tuning, e.g. on your own data); "
                    "its config is the default.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, accept_changed_data, init_from,
-        quiet) -> None:
+def fit(config, intrinsics, real, run_dir, objective, overrides, max_steps, probe, device, accept_changed_data,
+        init_from, quiet) -> None:
     """Train a model; under `torchrun --nproc_per_node K` it trains on K processes.
 
     Ctrl-C or SIGTERM saves a checkpoint after the current step; the same command resumes.
@@ -56,10 +59,15 @@ def fit(config, intrinsics, real, run_dir, overrides, max_steps, probe, device, 
 
     if overrides and not (config or init_from):
         raise click.UsageError("--set needs --config or --init-from (a resumed run keeps its saved config)")
+    if objective and not config:
+        raise click.UsageError("--objective needs --config (the preset whose networks it goes on)")
     try:
         with one_line_errors(EXPECTED + (NonFiniteLoss,)):
             if config:
-                cfg = load_config(config, list(overrides))
+                from .config import objective_overrides
+
+                extra = objective_overrides(config, objective) if objective else []
+                cfg = load_config(config, [*extra, *overrides])
             elif init_from and overrides:  # the source run's config, changed where --set says
                 from .config import apply_overrides
                 from .inference import load_run_options
