@@ -37,11 +37,9 @@ WIDTHS = {
 def one(config: str, steps: int, h: int, w: int, kind: str, device: str = "cpu") -> dict:
     import torch
 
-    from train.config import load_config
+    from train.config import load_config, objective_overrides
     from train.loop import build_optimisation, discriminator_step, generator_step
     from train.model import build_model
-
-    from train.config import objective_overrides
 
     preset, extra = WIDTHS[(kind, config)]
     if (kind, config) == ("iae", "paper"):

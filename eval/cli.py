@@ -362,7 +362,6 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
 
     from .reproduce import BUDGETS, RUNS, Plan, reproduce
 
-
     if budget.startswith("sanity"):
         for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real)):
             if value:
