@@ -223,7 +223,8 @@ class Plan:
             diff = differing_sections(cfg, config_from_dict(run.options()["config"]))
             if diff:
                 raise ConfigError(f"{run.root}: run {name!r} was trained with another config (section(s) {diff} "
-                                  "differ); rerun with the options it started with, or choose another --out")
+                                  "differ); rerun with the --objective and --set options it started with, or choose "
+                                  "another --out")
 
     def lanes(self) -> int:
         # Trainings beyond the runs, or beyond the cores on a CPU, cannot run side by side.
