@@ -347,3 +347,26 @@ def test_category_and_length_guesses_on_the_named_catalogue():
     assert right >= 24
     assert all(by_cat["sedan"]) and all(by_cat["station_wagon"]) and all(by_cat["van"])
     assert guess_length("van", 2.75) == 5.05  # toy units: the category's typical length
+
+
+def test_a_ctrl_c_inside_the_gltf_importer_is_an_interrupt_not_a_bad_file(tmp_path, monkeypatch):
+    """Blender's glTF operator catches a KeyboardInterrupt raised in its Python and reports it as a
+    RuntimeError; reading a model turns that back into the interrupt (exit 130, "interrupted"), so a
+    Ctrl-C while a slow model imports is not "cannot be imported"."""
+    from types import SimpleNamespace
+
+    from blender_gen.cars import faces
+
+    def interrupted(filepath):
+        raise RuntimeError("Error: Python: Traceback (most recent call last):\n  ...\nKeyboardInterrupt\n")
+
+    def broken(filepath):
+        raise RuntimeError("Error: Python: Traceback (most recent call last):\n  ...\nValueError: bad accessor\n")
+
+    for importer, expected in ((interrupted, KeyboardInterrupt), (broken, RuntimeError)):
+        fake = SimpleNamespace(data=SimpleNamespace(objects=[]),
+                               context=SimpleNamespace(preferences=SimpleNamespace(filepaths=SimpleNamespace())),
+                               ops=SimpleNamespace(import_scene=SimpleNamespace(gltf=importer)))
+        monkeypatch.setattr(faces, "bpy", fake)
+        with pytest.raises(expected):
+            faces.read_objects(tmp_path / "car.gltf")

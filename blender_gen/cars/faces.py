@@ -31,7 +31,12 @@ def read_objects(path: Path) -> list[bpy.types.Object]:
     bpy.context.preferences.filepaths.use_scripts_auto_execute = False
     with quiet_stdout(python_too=True):  # the glTF importer logs every node
         if suffix in (".glb", ".gltf"):
-            bpy.ops.import_scene.gltf(filepath=str(path))
+            try:
+                bpy.ops.import_scene.gltf(filepath=str(path))
+            except RuntimeError as exc:  # the operator reports a Ctrl-C inside its Python as a failed import
+                if "KeyboardInterrupt" in str(exc):
+                    raise KeyboardInterrupt from None
+                raise
         elif suffix == ".obj":
             bpy.ops.wm.obj_import(filepath=str(path))
         elif suffix == ".blend":
