@@ -20,17 +20,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-# (preset, overrides) per model kind and width: "paper" widths and cpu-small-like narrow ones. The
-# Intrinsic Autoencoder at the paper's widths trains the default objective (what `reproduce --budget gpu`
-# trains: the shader R, added in one()) or the paper's (its pix2pixHD R, "paper-objective").
+# (preset, overrides, objective) per model kind and width: "paper" widths and cpu-small-like narrow
+# ones. The Intrinsic Autoencoder at the paper's widths trains the default objective (what
+# `reproduce --budget gpu` trains: the shader R) or the paper's own ("paper-objective", its pix2pixHD R).
 WIDTHS = {
-    ("iae", "paper"): ("paper", []),
-    ("iae", "paper-objective"): ("paper", []),
-    ("iae", "cpu-small"): ("cpu-small", []),
-    ("cyclegan", "paper"): ("cyclegan", []),
-    ("cyclegan", "cpu-small"): ("cyclegan", ["cyclegan.ngf=16", "cyclegan.n_blocks=4", "cyclegan.ndf=16"]),
-    ("munit", "paper"): ("munit", []),
-    ("munit", "cpu-small"): ("munit", ["munit.dim=16", "munit.n_res=2", "munit.mlp_dim=64", "munit.d_ndf=16"]),
+    ("iae", "paper"): ("paper", [], "default"),
+    ("iae", "cpu-small"): ("cpu-small", [], None),
+    ("iae", "paper-objective"): ("paper", [], None),
+    ("cyclegan", "paper"): ("cyclegan", [], None),
+    ("cyclegan", "cpu-small"): ("cyclegan", ["cyclegan.ngf=16", "cyclegan.n_blocks=4", "cyclegan.ndf=16"], None),
+    ("munit", "paper"): ("munit", [], None),
+    ("munit", "cpu-small"): ("munit", ["munit.dim=16", "munit.n_res=2", "munit.mlp_dim=64", "munit.d_ndf=16"], None),
 }
 
 
@@ -41,9 +41,9 @@ def one(config: str, steps: int, h: int, w: int, kind: str, device: str = "cpu")
     from train.loop import build_optimisation, discriminator_step, generator_step
     from train.model import build_model
 
-    preset, extra = WIDTHS[(kind, config)]
-    if (kind, config) == ("iae", "paper"):
-        extra = [*extra, *objective_overrides("paper", "default")]
+    preset, extra, objective = WIDTHS[(kind, config)]
+    if objective:
+        extra = [*extra, *objective_overrides(preset, objective)]
     cfg = load_config(preset, [f"data.height={h}", f"data.width={w}", "data.batch_size=1", *extra])
     torch.manual_seed(0)
     model = build_model(cfg).to(device)
@@ -103,10 +103,8 @@ def main() -> None:
     gpu = args.device.startswith("cuda")
     results = []
     for kind in args.kinds:
-        configs = (("paper", 50 if gpu else 3), ("cpu-small", 200 if gpu else 20))
-        if kind == "iae":
-            configs = (*configs, ("paper-objective", 50 if gpu else 3))
-        for config, steps in configs:
+        for config in (c for k, c in WIDTHS if k == kind):
+            steps = (50 if gpu else 3) if config.startswith("paper") else (200 if gpu else 20)
             proc = subprocess.run([sys.executable, __file__, "--one", config, str(steps), h, w, kind,
                                    "--device", args.device], capture_output=True, text=True, cwd=ROOT, check=True)
             r = json.loads(proc.stdout.strip().splitlines()[-1])

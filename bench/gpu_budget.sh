@@ -17,7 +17,9 @@ G=(bench/objective_sweep.py grid --data "$PACK" --variants bench/variants_gpu.to
 $PY "${G[@]}" --only default --seeds 0 1 &
 $PY "${G[@]}" --only oracle --seeds 1 &
 wait
-P="model.renderer=shader,model.shader_gain=shared,model.shader_background=environment,loss.adv_m_on=reflection"
+# the picture builds each model from its variant's --set values, read from the variants file
+P=$($PY -c "import sys; sys.path.insert(0, 'bench'); from objective_sweep import load_variants
+print(','.join(load_variants('bench/variants_gpu.toml')['default']['set']))")
 R=()
 for s in 0 1; do [ -f "$W/default_s$s.safetensors" ] && R+=("seed $s=$W/default_s$s.safetensors,$P"); done
 [ -f "$W/oracle_s1.safetensors" ] && R+=("oracle=$W/oracle_s1.safetensors,model.kind=oracle")
