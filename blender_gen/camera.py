@@ -28,6 +28,9 @@ class CameraRanges:
     sensor_width: float = 36.0
     target_jitter: float = 0.25  # m, std-dev of the look-at point around the car's centre
     min_coverage: float = 0.08  # the car's 2-D bounding box must cover this fraction of the frame
+    # At most this fraction. Below 1 the camera distance is solved for a coverage drawn uniformly in
+    # [min_coverage, max_coverage] (photo-like framing); at 1 the distance is drawn (the paper's rule).
+    max_coverage: float = 1.0
     margin: float = 0.02  # the car keeps this fraction of the width away from the borders
     max_tries: int = 500
 
@@ -39,7 +42,10 @@ class CameraRanges:
         if not 0 < self.focal_min <= self.focal_max:
             raise ValueError(f"focal length range must satisfy 0 < min <= max, got {self.focal_min}..{self.focal_max}")
         if not 0 <= self.min_coverage < 1:
-            raise ValueError(f"min_coverage must be in [0, 1), got {self.min_coverage}")
+            raise ValueError(f"--min-coverage {self.min_coverage}: expected a fraction of the frame in [0, 1)")
+        if not self.min_coverage < self.max_coverage <= 1:
+            raise ValueError(f"--max-coverage {self.max_coverage}: expected above --min-coverage "
+                             f"({self.min_coverage}) and at most 1")
 
 
 @dataclass(frozen=True)
@@ -99,8 +105,17 @@ def project(points: np.ndarray, pose: CameraPose, width: int, height: int) -> tu
     return np.stack([x, y], axis=1), depth
 
 
+def coverage(points: np.ndarray, pose: CameraPose, width: int, height: int) -> float:
+    """The fraction of the frame the car's 2-D bounding box covers (unclipped: above 1 when it
+    overflows the frame)."""
+    xy, _ = project(points, pose, width, height)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return float((hi[0] - lo[0]) * (hi[1] - lo[1]) / (width * height))
+
+
 def view_ok(points: np.ndarray, pose: CameraPose, width: int, height: int, ranges: CameraRanges) -> bool:
-    """The whole car in frame (with a margin), in front of the camera, covering enough."""
+    """The whole car in frame (with a margin), in front of the camera, covering enough (and, with
+    a maximum below 1, not too much)."""
     xy, depth = project(points, pose, width, height)
     if np.any(depth < 0.1):
         return False
@@ -108,15 +123,27 @@ def view_ok(points: np.ndarray, pose: CameraPose, width: int, height: int, range
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     if lo[0] < m or lo[1] < m or hi[0] > width - m or hi[1] > height - m:
         return False
-    return (hi[0] - lo[0]) * (hi[1] - lo[1]) >= ranges.min_coverage * width * height
+    area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+    return ranges.min_coverage * width * height <= area and (
+        ranges.max_coverage >= 1 or area <= ranges.max_coverage * width * height)
+
+
+def _pose(loc: np.ndarray, target: np.ndarray, focal: float, ranges: CameraRanges) -> CameraPose:
+    return CameraPose(
+        location=tuple(float(v) for v in loc), rotation=tuple(tuple(float(v) for v in row) for row in look_at(loc, target)),
+        target=tuple(float(v) for v in target), focal_length=float(focal), sensor_width=ranges.sensor_width,
+    )
 
 
 def sample_camera(rng: np.random.Generator, points: np.ndarray, width: int, height: int,
                   ranges: CameraRanges = CameraRanges()) -> CameraPose:
     """Draw poses until one keeps the car (given by sample `points`) whole and large enough.
 
-    The camera is also kept out of the car's bounding box (plus 0.3 m).
+    The camera is also kept out of the car's bounding box (plus 0.3 m). With `max_coverage` below 1
+    the framing is drawn instead of the distance (`_sample_framed`).
     """
+    if ranges.max_coverage < 1:
+        return _sample_framed(rng, points, width, height, ranges)
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = 0.5 * (lo + hi)
     for _ in range(ranges.max_tries):
@@ -127,16 +154,94 @@ def sample_camera(rng: np.random.Generator, points: np.ndarray, width: int, heig
         focal = rng.uniform(ranges.focal_min, ranges.focal_max)
         if np.all(loc > lo - 0.3) and np.all(loc < hi + 0.3):
             continue
-        pose = CameraPose(
-            location=tuple(float(v) for v in loc), rotation=tuple(tuple(float(v) for v in row) for row in look_at(loc, target)),
-            target=tuple(float(v) for v in target), focal_length=float(focal), sensor_width=ranges.sensor_width,
-        )
+        pose = _pose(loc, target, focal, ranges)
         if view_ok(points, pose, width, height, ranges):
             return pose
-    raise CameraError(
+    raise _no_camera(ranges)
+
+
+_HULLS: dict[bytes, np.ndarray] = {}  # a car's convex hull per point set (a model is reused for several views)
+
+
+def _hull(points: np.ndarray) -> np.ndarray:
+    """The points of the convex hull: they project to the same bounding box as all the points."""
+    import hashlib
+
+    key = hashlib.blake2b(np.ascontiguousarray(points).tobytes(), digest_size=16).digest()
+    if key not in _HULLS:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            _HULLS.clear()
+            _HULLS[key] = points[ConvexHull(points).vertices]
+        except (QhullError, ValueError):  # flat or tiny point sets
+            _HULLS[key] = points
+    return _HULLS[key]
+
+
+def _sample_framed(rng: np.random.Generator, points: np.ndarray, width: int, height: int,
+                   ranges: CameraRanges) -> CameraPose:
+    """A pose whose car covers a drawn fraction of the frame. Direction, height, look-at point and
+    focal length are drawn as in `sample_camera`; then, along that direction, the coverages the
+    radius range reaches with the car whole in the frame are found (coverage falls with distance),
+    a coverage is drawn uniformly in their overlap with [min_coverage, max_coverage] and the
+    distance is bisected for it. A direction with no overlap is drawn again."""
+    hull = _hull(points)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    m = ranges.margin * width
+    for _ in range(ranges.max_tries):
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        z = rng.uniform(ranges.height_min, ranges.height_max)
+        target = centre + rng.normal(0.0, ranges.target_jitter, 3)
+        focal = rng.uniform(ranges.focal_min, ranges.focal_max)
+        direction = np.array([np.cos(a), np.sin(a)])
+        f = focal / ranges.sensor_width * width
+
+        def box(r: float) -> tuple[bool, float]:
+            """(the car whole in the frame with the margin, its coverage) from distance r."""
+            loc = np.array([*(centre[:2] + r * direction), z])
+            p = (hull - loc) @ look_at(loc, target)
+            depth = -p[:, 2]
+            if depth.min() < 0.1:
+                return False, np.inf
+            x, y = 0.5 * width + f * p[:, 0] / depth, 0.5 * height - f * p[:, 1] / depth
+            inside = x.min() >= m and y.min() >= m and x.max() <= width - m and y.max() <= height - m
+            return inside, float(np.ptp(x) * np.ptp(y) / (width * height))
+
+        def bisect(near: float, far: float, too_close, steps: int) -> float:
+            for _step in range(steps):
+                mid = 0.5 * (near + far)
+                near, far = (mid, far) if too_close(mid) else (near, mid)
+            return far
+
+        fits_far, c_far = box(ranges.radius_max)
+        if not fits_far:
+            continue  # the car does not fit even from the farthest point
+        closest = ranges.radius_min
+        if not box(closest)[0]:  # the car fits from farther away only: 8 m / 2^16, about 0.1 mm
+            closest = bisect(closest, ranges.radius_max, lambda r: not box(r)[0], 16)
+        c_lo, c_hi = max(ranges.min_coverage, c_far), min(ranges.max_coverage, box(closest)[1])
+        if c_lo > c_hi:
+            continue
+        want = rng.uniform(c_lo, c_hi)
+        r = bisect(closest, ranges.radius_max, lambda r: box(r)[1] > want, 20)
+        pose = _pose(np.array([*(centre[:2] + r * direction), z]), target, focal, ranges)
+        loc = np.array(pose.location)
+        if np.all(loc > lo - 0.3) and np.all(loc < hi + 0.3):
+            continue
+        if view_ok(points, pose, width, height, ranges):
+            return pose
+    raise _no_camera(ranges)
+
+
+def _no_camera(ranges: CameraRanges) -> CameraError:
+    cover = (f"coverage {ranges.min_coverage}..{ranges.max_coverage}" if ranges.max_coverage < 1
+             else f"coverage at least {ranges.min_coverage}")
+    return CameraError(
         f"no valid camera in {ranges.max_tries} draws: the car never fits the frame with radius "
-        f"{ranges.radius_min}..{ranges.radius_max} m and focal {ranges.focal_min}..{ranges.focal_max} mm; "
-        "widen the ranges or lower --min-coverage"
+        f"{ranges.radius_min}..{ranges.radius_max} m, focal {ranges.focal_min}..{ranges.focal_max} mm and {cover}; "
+        "widen the ranges or lower --min-coverage / --max-coverage"
     )
 
 

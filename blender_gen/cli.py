@@ -157,6 +157,10 @@ def _common_options(fn):
                      show_default=True, help="Focal length range in mm (36 mm sensor)."),
         click.option("--min-coverage", default=CameraRanges.min_coverage, show_default=True, type=float,
                      help="Minimum fraction of the frame the car's bounding box must cover."),
+        click.option("--max-coverage", default=CameraRanges.max_coverage, show_default=True, type=float,
+                     help="Maximum fraction. Below 1 the framing is drawn instead of the distance: a coverage "
+                          "uniform between the two (as far as each view allows), the camera distance solved "
+                          "for it; photo-like framing is about 0.3-0.7 (see `iae-eval framing`)."),
         click.option("--views-per-car", default=4, show_default=True, type=click.IntRange(1, MAX_INDEX + 1),
                      help="Consecutive samples that share a (randomly drawn) car model; 1 = a new draw per sample."),
         click.option("--quiet", is_flag=True, help="No progress bar."),
@@ -175,7 +179,7 @@ def _build_recipe(kind: str, default_cars: str, default_samples: int, o: dict,
         _fail(f"--focal-range {o['focal_range']!r}: expected MIN-MAX in mm, e.g. 24-60")
     ranges = CameraRanges(radius_min=o["radius_min"], radius_max=o["radius_max"], height_min=o["height_min"],
                           height_max=o["height_max"], focal_min=float(m.group(1)), focal_max=float(m.group(2)),
-                          min_coverage=o["min_coverage"])
+                          min_coverage=o["min_coverage"], max_coverage=o["max_coverage"])
     try:
         ranges.validate()
     except ValueError as exc:
@@ -305,7 +309,7 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
          "radius_min": CameraRanges.radius_min, "radius_max": CameraRanges.radius_max,
          "height_min": CameraRanges.height_min, "height_max": CameraRanges.height_max,
          "focal_range": f"{CameraRanges.focal_min:g}-{CameraRanges.focal_max:g}",
-         "min_coverage": CameraRanges.min_coverage, "views_per_car": 1, "quiet": quiet,
+         "min_coverage": CameraRanges.min_coverage, "max_coverage": CameraRanges.max_coverage, "views_per_car": 1, "quiet": quiet,
          "background": "black" if pbr else background}
     recipe = _build_recipe("pbr" if pbr else "intrinsics", car, 8 if pbr else 1, o)
     _run(replace(recipe, orbit=orbit), o)

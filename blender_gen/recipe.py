@@ -85,6 +85,8 @@ class Recipe:
             d["extra_layers"] = list(self.extras())
         else:
             del d["extra_layers"]  # and sets made before the extra layers
+        if self.camera.max_coverage == CameraRanges.max_coverage:
+            del d["camera"]["max_coverage"]  # no maximum: sets made before the option keep their identity
         if self.kind != "pbr" or self.noise_threshold == Recipe.noise_threshold:
             del d["noise_threshold"]  # the default: sets made before the option keep their identity
         if self.orbit is None:  # per-sample Cycles noise by frame number (render.py); older sets

@@ -262,6 +262,79 @@ def flicker(runs, path, intrinsics, out, force) -> None:
                    f"{r['ratio_whole_frame']:>8.2f}{r['ratio_car']:>10.2f}{te['whole_frame']:>10.2f}{te['car']:>9.2f}")
 
 
+@main.command()
+@click.argument("images", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--sheet", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also draw the estimated boxes (and a PBR set's true ones) on up to 16 of the images (PNG).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the figures as JSON.")
+@click.option("--limit", type=click.IntRange(1), default=200, show_default=True,
+              help="Images read at most, spread evenly over the sorted names.")
+@click.option("--force", is_flag=True, help="Replace existing output files (never inside a run or dataset folder).")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def framing(images, sheet, out, limit, force, quiet) -> None:
+    """How much of the frame the car fills in IMAGES (a folder of photos, or a PBR set, which also
+    shows the estimate's error against its masks), and the iae-gen options that frame cameras alike."""
+    import numpy as np
+
+    from blender_gen.dataset import atomic_write_json
+
+    from .framing import Framing, car_box, contact_sheet, coverage_range, estimate_framing, pbr_frames, spread
+
+    with one_line_errors():
+        for path, hint in ((sheet, "--sheet"), (out, "--out")):
+            if path is not None:
+                refuse_output(path, hint, force)
+        result: dict = {"images": str(images)}
+        shown = []
+        if (images / "dataset.json").is_file():  # a PBR set: the truth is in its masks
+            est, truth = [], []
+            for name, frame, box in pbr_frames(images, limit, not quiet):
+                guess = car_box(frame)
+                est.append(guess)
+                truth.append(box)
+                shown.append((name, frame, guess, box))
+            from .framing import box_coverage
+
+            e = np.array([box_coverage(b, shown[0][1].shape) for b in est])
+            t = np.array([box_coverage(b, shown[0][1].shape) for b in truth])
+            found = Framing(tuple(e.tolist()), (), *coverage_range(e))
+            err = np.abs(e - t)
+            result["truth"] = {"coverages": t.round(4).tolist(), "percentiles_10_50_90": np.percentile(t, [10, 50, 90]).round(3).tolist(),
+                               "range": list(coverage_range(t))}
+            result["error"] = {"median_abs": round(float(np.median(err)), 4),
+                               "p90_abs": round(float(np.percentile(err, 90)), 4),
+                               "correlation": round(float(np.corrcoef(e, t)[0, 1]), 3) if len(e) > 1 else None}
+        else:
+            from train.data import image_files
+
+            files = image_files(images)
+            if not files:
+                raise ValueError(f"{images}: no .jpg/.png photos (nor a PBR set's dataset.json)")
+            found = estimate_framing(files, limit, not quiet)
+            if sheet is not None:
+                from .framing import _photo_frames
+
+                shown = [(n, f, car_box(f), None) for n, f in _photo_frames(spread(files, 16), 16, False)
+                         if f is not None]
+        result.update(coverages=[round(c, 4) for c in found.coverages], skipped=list(found.skipped),
+                      percentiles_10_50_90=np.percentile(found.coverages, [10, 50, 90]).round(3).tolist(),
+                      range=[found.low, found.high], gen_options=found.gen_options())
+        if sheet is not None and shown:
+            sheet.parent.mkdir(parents=True, exist_ok=True)
+            contact_sheet(spread(shown, 16)).save(sheet)
+        if out is not None:
+            atomic_write_json(out, result)
+    click.echo(f"{images}: {found.describe()}")
+    if "truth" in result:
+        tp, er = result["truth"]["percentiles_10_50_90"], result["error"]
+        click.echo(f"  true coverage (masks): {tp[0]:.2f} / {tp[1]:.2f} / {tp[2]:.2f} at the 10th / 50th / 90th "
+                   f"percentile; estimate's error: median {er['median_abs']:.3f}, 90th percentile {er['p90_abs']:.3f}, "
+                   f"correlation {er['correlation']}")
+    for name in found.skipped:
+        click.echo(f"  skipped (unreadable): {name}")
+    click.echo(f"  iae-gen options that frame the car alike: {' '.join(found.gen_options())}")
+
+
 @main.command("ab-study")
 @click.option("--a", "a", required=True, type=click.Path(path_type=Path), help="Images of method A (e.g. `iae-train render` output).")
 @click.option("--b", "b", required=True, type=click.Path(path_type=Path), help="Images of method B.")
@@ -330,6 +403,10 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--car-rules", default=None, help="With model files in --cars: a rules TOML, or 'auto' (inferred parts).")
 @click.option("--gallery", type=click.IntRange(1, 64), default=8, show_default=True,
               help="With --real PHOTOS: photos held out of training and shown decomposed in the report.")
+@click.option("--coverage", default="auto", show_default=True, metavar="auto|paper|LO-HI",
+              help="How much of the frame the car's bounding box covers in every generated set: auto = "
+                   "estimated from --real PHOTOS (the paper's camera rule without photos; `iae-eval framing` "
+                   "shows the estimate), paper = the paper's rule (coverage at least 0.08), or a range such as 0.3-0.7.")
 @click.option("--eval", "n_eval", type=click.IntRange(1), default=None, help="Table-3 set size.")
 @click.option("--fid", "n_fid", type=click.IntRange(2), default=None, help="FID intrinsics count.")
 @click.option("--runs", default=None, help=f"Comma-separated subset of: {', '.join(_RUN_NAMES)}.")
@@ -353,8 +430,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--seeds", "seeds", default=None, help="Sanity settings only: comma-separated training seeds "
               "(the budget's by default).")
 @click.option("--no-oracle", is_flag=True, help="Sanity settings only: skip the supervised oracle's runs.")
-def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars, car_rules, gallery, n_eval, n_fid,
-                  runs, jobs, threads, seed, run_seed, dry_run, objective, overrides, settings, seeds, no_oracle) -> None:
+def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars, car_rules, gallery, coverage,
+                  n_eval, n_fid, runs, jobs, threads, seed, run_seed, dry_run, objective, overrides, settings, seeds, no_oracle) -> None:
     """The paper's comparison end to end: data, every model of Table 1, the report."""
     import os
     import shutil
@@ -363,7 +440,8 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
     from .reproduce import BUDGETS, RUNS, Plan, reproduce
 
     if budget.startswith("sanity"):
-        for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real)):
+        for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real),
+                            ("--coverage", coverage != "auto")):
             if value:
                 raise click.BadParameter("the sanity settings use their own data", param_hint=flag)
         if data is not None:
@@ -377,6 +455,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         if value:
             raise click.BadParameter("applies to the sanity budgets only", param_hint=flag)
     n_real, photos = _real_option(real)
+    framing = _coverage_option(coverage)
     if cars:
         from blender_gen.cli import check_cars
 
@@ -420,11 +499,24 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         click.echo(f"--jobs {jobs}: capped at {min(cores, len(chosen))} ({len(chosen)} run(s), {cores} core(s))")
         jobs = min(cores, len(chosen))
     plan = Plan(b, Path(out or f"out/reproduce_{budget}"), seed, jobs, threads or max(1, cores // jobs), gpus, chosen,
-                run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides), objective)
+                run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides), objective,
+                framing if isinstance(framing, tuple) else None)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     real_text = f"your photos in {photos} ({gallery} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
+    if framing == "auto" and photos is not None:  # match the synthetic cameras to the photos
+        from .framing import estimate_framing
+
+        with one_line_errors():
+            found = estimate_framing(plan.training_photos())
+        plan = replace(plan, coverage=(found.low, found.high))
+        click.echo(f"  framing   your photos: {found.describe()}")
+    if plan.coverage is not None:
+        click.echo(f"  cameras   every generated set draws the car covering {plan.coverage[0]:.2f}-{plan.coverage[1]:.2f} "
+                   "of the frame (iae-gen --min-coverage/--max-coverage; --coverage sets it)")
+    else:
+        click.echo("  cameras   the paper's rule: within 8 m and 3 m high, the car covering at least 0.08 of the frame")
     click.echo(f"  training  {len(chosen)} runs ({', '.join(chosen)}), {b.steps} steps each at "
                f"{b.train[1]}x{b.train[0]} (width x height), batch {b.batch}")
     extra = plan.objective_sets()
@@ -456,6 +548,21 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
         raise click.ClickException("torchrun not found on PATH (it comes with torch)")
     with one_line_errors():
         reproduce(plan)
+
+
+def _coverage_option(value: str) -> str | tuple[float, float]:
+    """--coverage: 'auto', 'paper' or (LO, HI) with 0 <= LO < HI <= 1."""
+    if value in ("auto", "paper"):
+        return value
+    m = re.fullmatch(r"\s*([\d.]+)\s*-\s*([\d.]+)\s*", value)
+    try:
+        lo, hi = (float(m.group(1)), float(m.group(2))) if m else (None, None)
+    except ValueError:
+        lo = hi = None
+    if lo is None or not 0 <= lo < hi <= 1:
+        raise click.BadParameter(f"{value!r}: expected auto, paper or LO-HI with 0 <= LO < HI <= 1, e.g. 0.3-0.7",
+                                 param_hint="--coverage")
+    return lo, hi
 
 
 def _real_option(real: str | None) -> tuple[int | None, Path | None]:

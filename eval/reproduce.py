@@ -101,6 +101,9 @@ class Plan:
     gallery: int = 8
     overrides: tuple[str, ...] = ()  # --set for the Intrinsic Autoencoder's runs (not the oracle or baselines)
     objective: str = "default"  # the Intrinsic Autoencoder's objective: the measured defaults or the paper's
+    # the fraction of the frame the car covers in every generated set (iae-gen --min/--max-coverage),
+    # matched to the photos' framing (eval/framing.py); None = the paper's camera rule
+    coverage: tuple[float, float] | None = None
 
     def objective_sets(self) -> list[str]:
         """--set values that put the chosen objective on the budget's preset (widths and sizes stay)."""
@@ -117,10 +120,8 @@ class Plan:
         """The real images the runs train on: the stand-in PBR set, or the user's photos less the gallery."""
         return self.data_dir / ("photos_train" if self.photos is not None else "real")
 
-    def split_photos(self) -> tuple[int, int]:
-        """Links to the user's photos in DATA/photos_train and DATA/photos_gallery: every k-th photo
-        (sorted by path) is held out for the gallery, the rest train. Deterministic, so parts of one
-        seed agree; (training, gallery) counts."""
+    def photo_split(self) -> tuple[list[Path], set[int]]:
+        """The user's photos (sorted by path) and the indices held out for the gallery: every k-th."""
         from train.data import image_files
 
         files = image_files(self.photos)
@@ -128,6 +129,17 @@ class Plan:
             raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed (.jpg/.png)")
         k = min(self.gallery, len(files) // 4)
         held = {round(j * (len(files) - 1) / max(1, k - 1)) for j in range(k)} if k > 1 else {len(files) // 2}
+        return files, held
+
+    def training_photos(self) -> list[Path]:
+        files, held = self.photo_split()
+        return [f for j, f in enumerate(files) if j not in held]
+
+    def split_photos(self) -> tuple[int, int]:
+        """Links to the user's photos in DATA/photos_train and DATA/photos_gallery: every k-th photo
+        (sorted by path) is held out for the gallery, the rest train. Deterministic, so parts of one
+        seed agree; (training, gallery) counts."""
+        files, held = self.photo_split()
         for name, keep in (("photos_train", lambda j: j not in held), ("photos_gallery", lambda j: j in held)):
             folder = self.data_dir / name
             want = {"__".join(f.relative_to(self.photos).parts): f.resolve() for j, f in enumerate(files) if keep(j)}
@@ -143,6 +155,8 @@ class Plan:
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.data_dir, self.seed
         common = ["--resolution", b.render, "--workers", str(max(1, min(os.cpu_count() or 1, 8))), "--quiet"]
+        if self.coverage is not None:  # every set framed like the photos (the stand-in and Table-3 sets too)
+            common += ["--min-coverage", f"{self.coverage[0]:.2f}", "--max-coverage", f"{self.coverage[1]:.2f}"]
         # iae-gen's --cars is repeated per token (a file name may hold a comma)
         mine = ([a for c in self.cars for a in ("--cars", c)]
                 + (["--car-rules", self.car_rules] if self.car_rules else [])) if self.cars else []

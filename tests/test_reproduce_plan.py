@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 import subprocess
 import sys
 from pathlib import Path
@@ -116,8 +117,6 @@ def test_the_sanity_settings_refuse_a_shared_data_folder(tmp_path):
 
 
 def test_a_part_with_other_counts_refuses_the_shared_data_folder(tmp_path):
-    from dataclasses import replace
-
     shared = tmp_path / "shared"
     plan = Plan(BUDGETS["smoke"], tmp_path / "part1", 0, 1, 1, 0, ["full"], data=shared)
     plan.check_shared_data()  # nothing there yet
@@ -164,6 +163,10 @@ def test_own_cars_and_photos_make_the_plan(tmp_path):
         assert cars == ["sedan_a", "suv_b"], what  # one --cars per token, as iae-gen repeats it
         ctx = gen_main.commands[args[0]].make_context(args[0], list(args[1:]))  # iae-gen parses the command
         assert tuple(ctx.params["cars"]) == ("sedan_a", "suv_b"), what
+    framed = replace(plan, coverage=(0.4, 0.65))  # the photos' framing reaches every generated set
+    for what, args in framed.dataset_commands():
+        ctx = gen_main.commands[args[0]].make_context(args[0], list(args[1:]))
+        assert (ctx.params["min_coverage"], ctx.params["max_coverage"]) == (0.4, 0.65), what
     assert plan.split_photos() == (9, 3)
     assert len(list((plan.data_dir / "photos_gallery").iterdir())) == 3
     assert plan.split_photos() == (9, 3)  # idempotent
