@@ -92,6 +92,23 @@ def test_the_estimate_finds_a_car_shaped_region_and_skips_unreadable_photos(tmp_
     assert coverage_range([0.01, 0.02, 0.99, 0.99]) == (0.05, 0.9)  # the car stays whole in the frame
     with pytest.raises(ValueError, match="no readable photo"):
         estimate_framing([folder / "broken.jpg"], progress=False)
+    # the command: figures, the iae-gen options, the boxes drawn for a person to check, the JSON
+    from click.testing import CliRunner
+
+    from eval.cli import main
+
+    res = CliRunner().invoke(main, ["framing", str(folder), "--quiet", "--sheet", str(tmp_path / "boxes.png"),
+                                    "--out", str(tmp_path / "framing.json")])
+    assert res.exit_code == 0, res.output
+    assert f"--min-coverage {found.low:.2f} --max-coverage {found.high:.2f}" in res.output
+    assert f"skipped (unreadable): {folder / 'broken.jpg'}" in res.output
+    assert Image.open(tmp_path / "boxes.png").size[0] > 256
+    import json
+
+    assert json.loads((tmp_path / "framing.json").read_text())["range"] == [found.low, found.high]
+    (tmp_path / "empty").mkdir()
+    empty = CliRunner().invoke(main, ["framing", str(tmp_path / "empty")])
+    assert empty.exit_code == 1 and "no .jpg/.png photos" in empty.output
 
 
 @pytest.mark.blender
