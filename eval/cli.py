@@ -327,7 +327,7 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
     click.echo(f"{images}: {found.describe()}")
     if "truth" in result:
         tp, er = result["truth"]["percentiles_10_50_90"], result["error"]
-        click.echo(f"  true coverage (masks): {tp[0]:.2f} / {tp[1]:.2f} / {tp[2]:.2f} at the 10th / 50th / 90th "
+        click.echo(f"  true coverage (material layer): {tp[0]:.2f} / {tp[1]:.2f} / {tp[2]:.2f} at the 10th / 50th / 90th "
                    f"percentile; estimate's error: median {er['median_abs']:.3f}, 90th percentile {er['p90_abs']:.3f}, "
                    f"correlation {er['correlation']}")
     for name in found.skipped:

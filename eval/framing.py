@@ -10,7 +10,7 @@ The estimate: each photo is brought to the training frame exactly as the trainer
 to cover, centre-cropped; `train.data.cover_crop`) at 128x64, OpenCV's GrabCut separates the car
 from a rectangle 3% inside the border, and the largest foreground component's bounding box over
 the frame is the photo's coverage. No learned weights, deterministic (OpenCV's RNG is seeded).
-On a PBR set, whose mask gives the true coverage, `iae-eval framing` prints the estimate's error
+On a PBR set, whose material layer gives the true coverage, `iae-eval framing` prints the estimate's error
 beside it (docs/evaluation.md, "Framing").
 """
 from __future__ import annotations
@@ -159,9 +159,12 @@ def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True):
     ds = open_dataset(Path(root), kinds=("pbr",))
     for i in tqdm(spread(list(range(len(ds))), limit), desc="framing", unit="image", disable=not progress,
                   leave=False):
-        s = ds.load(i, ["rgb", "mask"])
-        mask = np.repeat(s["mask"].reshape(*s["mask"].shape[:2], 1), 3, axis=-1)
-        yield ds.rows[i]["file"], to_frame(linear_to_srgb(s["rgb"][..., :3])), mask_box(to_frame(mask)[..., 0] >= 128)
+        s = ds.load(i, ["rgb", "material"])
+        # the car is every pixel with a part material: the mask layer leaves out glass (it shows
+        # what is behind), while the cameras and a person count windows and glass roofs as the car
+        car = (s["material"][..., 0] > 0).astype(np.float32)
+        car = np.repeat(car[..., None], 3, axis=-1)
+        yield ds.rows[i]["file"], to_frame(linear_to_srgb(s["rgb"][..., :3])), mask_box(to_frame(car)[..., 0] >= 128)
 
 
 def contact_sheet(items: list[tuple[str, np.ndarray, Box | None, Box | None]], columns: int = 4,
