@@ -278,7 +278,10 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
 
     from blender_gen.dataset import atomic_write_json
 
-    from .framing import Framing, car_box, contact_sheet, coverage_range, estimate_framing, pbr_frames, spread
+    from train.data import image_files
+
+    from .framing import (Framing, box_coverage, car_box, contact_sheet, coverage_range, estimate_framing,
+                          pbr_frames, photo_frames, spread)
 
     with one_line_errors():
         for path, hint in ((sheet, "--sheet"), (out, "--out")):
@@ -293,8 +296,6 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
                 est.append(guess)
                 truth.append(box)
                 shown.append((name, frame, guess, box))
-            from .framing import box_coverage
-
             e = np.array([box_coverage(b, shown[0][1].shape) for b in est])
             t = np.array([box_coverage(b, shown[0][1].shape) for b in truth])
             found = Framing(tuple(e.tolist()), (), *coverage_range(e))
@@ -305,16 +306,12 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
                                "p90_abs": round(float(np.percentile(err, 90)), 4),
                                "correlation": round(float(np.corrcoef(e, t)[0, 1]), 3) if len(e) > 1 else None}
         else:
-            from train.data import image_files
-
             files = image_files(images)
             if not files:
                 raise ValueError(f"{images}: no .jpg/.png photos (nor a PBR set's dataset.json)")
             found = estimate_framing(files, limit, not quiet)
             if sheet is not None:
-                from .framing import _photo_frames
-
-                shown = [(n, f, car_box(f), None) for n, f in _photo_frames(spread(files, 16), 16, False)
+                shown = [(n, f, car_box(f), None) for n, f in photo_frames(spread(files, 16), 16, False)
                          if f is not None]
         result.update(coverages=[round(c, 4) for c in found.coverages], skipped=list(found.skipped),
                       percentiles_10_50_90=np.percentile(found.coverages, [10, 50, 90]).round(3).tolist(),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -120,7 +121,7 @@ def spread(items: list, limit: int = LIMIT) -> list:
     return [items[round(k * (len(items) - 1) / (limit - 1))] for k in range(limit)]
 
 
-def _photo_frames(photos: list[Path], limit: int, progress: bool):
+def photo_frames(photos: list[Path], limit: int, progress: bool) -> Iterator[tuple[str, np.ndarray | None]]:
     """(name, frame or None when unreadable) for up to `limit` photos spread over the sorted list."""
     from tqdm import tqdm
 
@@ -139,7 +140,7 @@ def estimate_framing(photos: list[Path], limit: int = LIMIT, progress: bool = Tr
     """The framing of a list of photo files; unreadable ones are skipped and named. A one-line
     ValueError when none can be read."""
     coverages, skipped = [], []
-    for name, frame in _photo_frames(photos, limit, progress):
+    for name, frame in photo_frames(photos, limit, progress):
         if frame is None:
             skipped.append(name)
         else:
@@ -149,7 +150,7 @@ def estimate_framing(photos: list[Path], limit: int = LIMIT, progress: bool = Tr
     return Framing(tuple(coverages), tuple(skipped), *coverage_range(coverages))
 
 
-def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True):
+def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True) -> Iterator[tuple[str, np.ndarray, Box | None]]:
     """(name, frame, true box) of a PBR set's images: the estimator checked where the answer is known."""
     from tqdm import tqdm
 
@@ -168,7 +169,7 @@ def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True):
 
 
 def contact_sheet(items: list[tuple[str, np.ndarray, Box | None, Box | None]], columns: int = 4,
-                  scale: int = 2):
+                  scale: int = 2) -> "Image.Image":
     """Frames with the estimated box (red) and, where known, the true one (green), labelled with
     their coverages: what the estimate saw, for a person to check."""
     from PIL import Image, ImageDraw
