@@ -17,9 +17,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from PIL import Image
 
 # the frame the estimate works in: the training aspect ratio, small enough for about 0.1 s a photo
 ESTIMATE_SIZE = (64, 128)  # height, width
@@ -169,7 +172,7 @@ def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True) -> Iterato
 
 
 def contact_sheet(items: list[tuple[str, np.ndarray, Box | None, Box | None]], columns: int = 4,
-                  scale: int = 2) -> "Image.Image":
+                  scale: int = 2) -> Image.Image:
     """Frames with the estimated box (red) and, where known, the true one (green), labelled with
     their coverages: what the estimate saw, for a person to check."""
     from PIL import Image, ImageDraw
