@@ -37,11 +37,21 @@ class SetInfo:
     envmaps: Counter = field(default_factory=Counter)
     sample_key: str | None = None  # None for photo folders
     identity: dict = field(default_factory=dict)  # resolution and content digest (Dataset.identity)
+    framing: str = "-"  # how much of the frame the car covers (generated sets; `framing_of`)
 
     def summary(self) -> dict:
         return {"role": self.role, "path": str(self.path), "kind": self.kind, "count": self.count, "seed": self.seed,
                 "cars": dict(sorted(self.cars.items())), "envmaps": dict(sorted(self.envmaps.items())),
-                "resolution": self.identity.get("resolution"), "content_sha256": self.identity.get("manifest_sha256")}
+                "resolution": self.identity.get("resolution"), "content_sha256": self.identity.get("manifest_sha256"),
+                "framing": self.framing}
+
+
+def framing_of(recipe: dict) -> str:
+    """A generated set's framing from its recipe: a coverage range (photo-like) or the paper's rule."""
+    camera = recipe.get("camera") or {}
+    if "max_coverage" in camera:
+        return f"{camera.get('min_coverage', 0):.2f}-{camera['max_coverage']:.2f}"
+    return f"paper's rule (>= {camera.get('min_coverage', 0.08):.2f})" if camera else "-"
 
 
 def describe(role: str, root: Path) -> SetInfo:
@@ -58,7 +68,7 @@ def describe(role: str, root: Path) -> SetInfo:
     return SetInfo(role, root, ds.kind, len(ds), ds.info.get("seed"),
                    Counter(r.get("car", {}).get("name", "?") for r in ds.rows),
                    Counter(r.get("envmap", {}).get("name", "?") for r in ds.rows),
-                   repr(sorted(key.items())) if key else None, ds.identity())
+                   repr(sorted(key.items())) if key else None, ds.identity(), framing_of(recipe))
 
 
 def _same_samples(a: SetInfo, b: SetInfo) -> bool:

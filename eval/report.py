@@ -475,13 +475,13 @@ def _gap_closed(d: dict, entries) -> str:
 
 
 def _datasets_table(datasets: list[dict]) -> tuple[list[str], list[list[str]]]:
-    head = ["Role", "Path", "Kind", "Images", "Seed", "Cars", "Environments"]
+    head = ["Role", "Path", "Kind", "Images", "Seed", "Cars", "Environments", "Car's share of the frame"]
 
     def names(c: dict) -> str:
         return f"{len(c)}: " + ", ".join(sorted(c)[:6]) + (" ..." if len(c) > 6 else "") if c else "-"
 
     rows = [[d["role"], d["path"], d["kind"], str(d["count"]), "-" if d["seed"] is None else str(d["seed"]),
-             names(d["cars"]), names(d["envmaps"])] for d in datasets]
+             names(d["cars"]), names(d["envmaps"]), d.get("framing", "-")] for d in datasets]
     return head, rows
 
 

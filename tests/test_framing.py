@@ -142,6 +142,10 @@ def test_own_data_plan_frames_its_sets_like_close_framed_photos(tmp_path):
             assert min(truth) >= 0.43 and max(truth) <= 0.72  # the renders keep the range asked for
             close_truth, close_photos = truth, photos
     assert medians["close"] > medians["loose"] + 0.1
+    from eval.protocol import describe  # the report's data table says how each set was framed
+
+    assert describe("--data", close).framing == "0.45-0.70"
+    assert describe("--data", loose).framing == "paper's rule (>= 0.08)"
     proc = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--runs", "full",
                            "--real", str(close_photos), "--out", str(tmp_path / "o"), "--dry-run"],
                           cwd=ROOT, capture_output=True, text=True)
