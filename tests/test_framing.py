@@ -161,3 +161,20 @@ def test_own_data_plan_frames_its_sets_like_close_framed_photos(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--coverage", "0.8-0.3",
                           "--dry-run"], cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 2 and "--coverage" in bad.stderr and "0 <= LO < HI <= 1" in bad.stderr
+
+
+def test_a_photo_is_read_upright_as_its_exif_orientation_says(tmp_path):
+    """A phone's portrait photo is landscape pixels with EXIF orientation 6 (turn 90 degrees
+    clockwise to view): training, decompose and the framing estimate must all see it upright."""
+    from train.data import read_photo
+
+    pixels = np.zeros((30, 60, 3), np.uint8)
+    pixels[:, :20] = 255  # a white band on the stored image's left: on the upright photo's top
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(pixels).save(tmp_path / "portrait.jpg", exif=exif.tobytes(), quality=95)
+    photo = read_photo(tmp_path / "portrait.jpg")
+    assert photo.shape == (60, 30, 3)
+    assert photo[:15].mean() > 0.9 and photo[-15:].mean() < 0.1
+    Image.fromarray(pixels).save(tmp_path / "plain.jpg", quality=95)  # no tag: as stored
+    assert read_photo(tmp_path / "plain.jpg").shape == (30, 60, 3)

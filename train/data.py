@@ -160,10 +160,14 @@ def photo_to_srgb01(img: Image.Image) -> np.ndarray:
 
 
 def read_photo(path: Path) -> np.ndarray:
-    """A photo as HxWx3 sRGB in [0, 1]; a one-line DatasetError names an unreadable or oversized file."""
+    """A photo as HxWx3 sRGB in [0, 1], upright as its EXIF orientation says (a phone stores a
+    portrait shot as landscape pixels plus that tag); a one-line DatasetError names an unreadable
+    or oversized file."""
+    from PIL import ImageOps
+
     try:
         with Image.open(path) as img:
-            return photo_to_srgb01(img)
+            return photo_to_srgb01(ImageOps.exif_transpose(img))
     except (OSError, Image.DecompressionBombError) as exc:
         raise DatasetError(f"{path}: cannot read image ({exc})") from None
 
