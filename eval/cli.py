@@ -499,7 +499,10 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
                 run_seed, data, tuple(cars), car_rules, photos, gallery, tuple(overrides), objective,
                 framing if isinstance(framing, tuple) else None)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
-    real_text = f"your photos in {photos} ({gallery} held out)" if photos is not None else f"{b.n_real} real stand-in"
+    if photos is not None:
+        with one_line_errors():
+            held_out = len(plan.photo_split()[1])  # --gallery, at most a quarter of the photos
+    real_text = f"your photos in {photos} ({held_out} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
     if framing == "auto" and photos is not None:  # match the synthetic cameras to the photos

@@ -181,7 +181,7 @@ def test_own_cars_and_photos_make_the_plan(tmp_path):
                            "--cars", "sedan_a", "--real", str(photos), "--out", str(tmp_path / "o"), "--dry-run"],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    assert f"your photos in {photos.resolve()} (8 held out)" in proc.stdout and "cars: 1 of yours" in proc.stdout
+    assert f"your photos in {photos.resolve()} (3 held out)" in proc.stdout and "cars: 1 of yours" in proc.stdout
     bad = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--real",
                           str(tmp_path / "nope"), "--dry-run"], cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 2 and "neither a count nor a folder of photos" in bad.stderr
