@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from eval.decomposition import score_predictions  # noqa: E402
 from eval.reference_rows import constant_predictions, prior_predictions  # noqa: E402
-from train.inference import decompose_images  # noqa: E402
+from train.inference import decompose_images, load_run_options  # noqa: E402
 
 KEYS = ("normal_mean_deg", "albedo_l1_srgb255", "reflection_l1_srgb255", "normal_hf_ratio")
 
@@ -35,7 +35,7 @@ def _summary(data: Path, predictions: Path) -> dict:
 
 
 def intrinsics_of(run: Path) -> Path:
-    return Path(json.loads((run / "training_options.json").read_text())["intrinsics"])
+    return Path(load_run_options(run)[0]["intrinsics"])
 
 
 def main() -> None:
@@ -65,7 +65,7 @@ def main() -> None:
                     refs[name] = _summary(args.data, make(intr, args.data, Path(tmp) / f"{name}_{label}", progress=False))
                 results["references"][str(intr)] = {"first_run": label, **refs}
     (args.out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    lines = [f"Scored on `{args.data.name}` ({'H at its training size, resized back'}); steps are each run's kept "
+    lines = [f"Scored on `{args.data.name}` (H at its training size, resized back); steps are each run's kept "
              "checkpoints; the swing is the largest minus the smallest normal error over them.", "",
              "| run | steps | normals (deg), last | swing | albedo L1 | reflection L1 | speckle N |",
              "|---|---|---|---|---|---|---|"]

@@ -96,34 +96,49 @@ def euler_xyz_deg(m: np.ndarray) -> np.ndarray:
 
 def project(points: np.ndarray, pose: CameraPose, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (x right, y down, origin top-left) and depth along the view axis."""
-    p = (np.asarray(points, dtype=np.float64) - np.asarray(pose.location)) @ pose.matrix()
+    return _project(points, np.asarray(pose.location), pose.matrix(), pose.focal_px(width), width, height)
+
+
+def _project(points: np.ndarray, location: np.ndarray, rotation: np.ndarray, focal_px: float, width: int,
+             height: int) -> tuple[np.ndarray, np.ndarray]:
+    """`project` from a camera's parts, without building a CameraPose (the framed sampler's bisection)."""
+    p = (np.asarray(points, dtype=np.float64) - location) @ rotation
     depth = -p[:, 2]
-    f = pose.focal_px(width)
     safe = np.where(depth > 1e-9, depth, 1e-9)
-    x = 0.5 * width + f * p[:, 0] / safe
-    y = 0.5 * height - f * p[:, 1] / safe
+    x = 0.5 * width + focal_px * p[:, 0] / safe
+    y = 0.5 * height - focal_px * p[:, 1] / safe
     return np.stack([x, y], axis=1), depth
+
+
+def _whole_in_frame(xy: np.ndarray, depth: np.ndarray, width: int, height: int, ranges: CameraRanges) -> bool:
+    """In front of the camera and inside the frame, `ranges.margin` of the width from its borders."""
+    if np.any(depth < 0.1):
+        return False
+    m = ranges.margin * width
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return not (lo[0] < m or lo[1] < m or hi[0] > width - m or hi[1] > height - m)
+
+
+def _box_fraction(xy: np.ndarray, width: int, height: int) -> float:
+    """The fraction of the frame the points' 2-D bounding box covers (above 1 when it overflows)."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return float((hi[0] - lo[0]) * (hi[1] - lo[1]) / (width * height))
 
 
 def coverage(points: np.ndarray, pose: CameraPose, width: int, height: int) -> float:
     """The fraction of the frame the car's 2-D bounding box covers (unclipped: above 1 when it
     overflows the frame)."""
-    xy, _ = project(points, pose, width, height)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    return float((hi[0] - lo[0]) * (hi[1] - lo[1]) / (width * height))
+    return _box_fraction(project(points, pose, width, height)[0], width, height)
 
 
 def view_ok(points: np.ndarray, pose: CameraPose, width: int, height: int, ranges: CameraRanges) -> bool:
     """The whole car in frame (with a margin), in front of the camera, covering enough (and, with
     a maximum below 1, not too much)."""
     xy, depth = project(points, pose, width, height)
-    if np.any(depth < 0.1):
+    if not _whole_in_frame(xy, depth, width, height, ranges):
         return False
-    m = ranges.margin * width
     lo, hi = xy.min(axis=0), xy.max(axis=0)
-    if lo[0] < m or lo[1] < m or hi[0] > width - m or hi[1] > height - m:
-        return False
-    area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+    area = (hi[0] - lo[0]) * (hi[1] - lo[1])  # in pixels, as sets made before compared it: the same draws
     return ranges.min_coverage * width * height <= area and (
         ranges.max_coverage >= 1 or area <= ranges.max_coverage * width * height)
 
@@ -189,7 +204,6 @@ def _sample_framed(rng: np.random.Generator, points: np.ndarray, width: int, hei
     hull = _hull(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = 0.5 * (lo + hi)
-    m = ranges.margin * width
     for _ in range(ranges.max_tries):
         a = rng.uniform(0.0, 2.0 * np.pi)
         z = rng.uniform(ranges.height_min, ranges.height_max)
@@ -201,13 +215,8 @@ def _sample_framed(rng: np.random.Generator, points: np.ndarray, width: int, hei
         def box(r: float) -> tuple[bool, float]:
             """(the car whole in the frame with the margin, its coverage) from distance r."""
             loc = np.array([*(centre[:2] + r * direction), z])
-            p = (hull - loc) @ look_at(loc, target)
-            depth = -p[:, 2]
-            if depth.min() < 0.1:
-                return False, np.inf
-            x, y = 0.5 * width + f * p[:, 0] / depth, 0.5 * height - f * p[:, 1] / depth
-            inside = x.min() >= m and y.min() >= m and x.max() <= width - m and y.max() <= height - m
-            return inside, float(np.ptp(x) * np.ptp(y) / (width * height))
+            xy, depth = _project(hull, loc, look_at(loc, target), f, width, height)
+            return _whole_in_frame(xy, depth, width, height, ranges), _box_fraction(xy, width, height)
 
         def bisect(near: float, far: float, too_close, steps: int) -> float:
             for _step in range(steps):

@@ -273,52 +273,43 @@ def flicker(runs, path, intrinsics, out, force) -> None:
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def framing(images, sheet, out, limit, force, quiet) -> None:
     """How much of the frame the car fills in IMAGES (a folder of photos, or a PBR set, which also
-    shows the estimate's error against its masks), and the iae-gen options that frame cameras alike."""
+    shows the estimate's error against the truth of its material layer), and the iae-gen options
+    that frame cameras alike."""
     import numpy as np
 
     from blender_gen.dataset import atomic_write_json
 
     from train.data import image_files
 
-    from .framing import (Framing, box_coverage, car_box, contact_sheet, coverage_range, estimate_framing,
-                          pbr_frames, photo_frames, spread)
+    from .framing import box_coverage, contact_sheet, coverage_range, measure, pbr_frames, photo_frames, spread
 
     with one_line_errors():
         for path, hint in ((sheet, "--sheet"), (out, "--out")):
             if path is not None:
                 refuse_output(path, hint, force)
-        result: dict = {"images": str(images)}
-        shown = []
-        if (images / "dataset.json").is_file():  # a PBR set: the truth is in its masks
-            est, truth = [], []
-            for name, frame, box in pbr_frames(images, limit, not quiet):
-                guess = car_box(frame)
-                est.append(guess)
-                truth.append(box)
-                shown.append((name, frame, guess, box))
-            e = np.array([box_coverage(b, shown[0][1].shape) for b in est])
-            t = np.array([box_coverage(b, shown[0][1].shape) for b in truth])
-            found = Framing(tuple(e.tolist()), (), *coverage_range(e))
+        if (images / "dataset.json").is_file():  # a PBR set: the truth is in its material layer
+            found, boxed = measure(pbr_frames(images, limit, not quiet), limit)
+        else:
+            files = image_files(images)
+            if not files:
+                raise ValueError(f"{images}: no .jpg/.png photos (nor a PBR set's dataset.json)")
+            found, boxed = measure(((n, f, None) for n, f in photo_frames(files, limit, not quiet)), len(files))
+        result: dict = {"images": str(images), "coverages": [round(c, 4) for c in found.coverages],
+                        "skipped": list(found.skipped),
+                        "percentiles_10_50_90": np.percentile(found.coverages, [10, 50, 90]).round(3).tolist(),
+                        "range": [found.low, found.high], "gen_options": found.gen_options()}
+        if boxed[0][3] is not None:
+            e = np.asarray(found.coverages)
+            t = np.array([box_coverage(truth, frame.shape) for _, frame, _, truth in boxed])
             err = np.abs(e - t)
             result["truth"] = {"coverages": t.round(4).tolist(), "percentiles_10_50_90": np.percentile(t, [10, 50, 90]).round(3).tolist(),
                                "range": list(coverage_range(t))}
             result["error"] = {"median_abs": round(float(np.median(err)), 4),
                                "p90_abs": round(float(np.percentile(err, 90)), 4),
                                "correlation": round(float(np.corrcoef(e, t)[0, 1]), 3) if len(e) > 1 else None}
-        else:
-            files = image_files(images)
-            if not files:
-                raise ValueError(f"{images}: no .jpg/.png photos (nor a PBR set's dataset.json)")
-            found = estimate_framing(files, limit, not quiet)
-            if sheet is not None:
-                shown = [(n, f, car_box(f), None) for n, f in photo_frames(spread(files, 16), 16, False)
-                         if f is not None]
-        result.update(coverages=[round(c, 4) for c in found.coverages], skipped=list(found.skipped),
-                      percentiles_10_50_90=np.percentile(found.coverages, [10, 50, 90]).round(3).tolist(),
-                      range=[found.low, found.high], gen_options=found.gen_options())
-        if sheet is not None and shown:
+        if sheet is not None:
             sheet.parent.mkdir(parents=True, exist_ok=True)
-            contact_sheet(spread(shown, 16)).save(sheet)
+            contact_sheet(spread(boxed, 16)).save(sheet)
         if out is not None:
             atomic_write_json(out, result)
     click.echo(f"{images}: {found.describe()}")
@@ -501,15 +492,15 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     if photos is not None:
         with one_line_errors():
-            held_out = len(plan.photo_split()[1])  # --gallery, at most a quarter of the photos
-    real_text = f"your photos in {photos} ({held_out} held out)" if photos is not None else f"{b.n_real} real stand-in"
+            files, held = plan.photo_split()  # --gallery photos held out, at most a quarter of them
+    real_text = f"your photos in {photos} ({len(held)} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
     if framing == "auto" and photos is not None:  # match the synthetic cameras to the photos
         from .framing import estimate_framing
 
         with one_line_errors():
-            found = estimate_framing(plan.training_photos())
+            found = estimate_framing([f for j, f in enumerate(files) if j not in held])  # the training photos
         plan = replace(plan, coverage=(found.low, found.high))
         click.echo(f"  framing   your photos: {found.describe()}")
     if plan.coverage is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
@@ -139,18 +139,28 @@ def photo_frames(photos: list[Path], limit: int, progress: bool) -> Iterator[tup
             yield str(path), None
 
 
-def estimate_framing(photos: list[Path], limit: int = LIMIT, progress: bool = True) -> Framing:
-    """The framing of a list of photo files; unreadable ones are skipped and named. A one-line
-    ValueError when none can be read."""
-    coverages, skipped = [], []
-    for name, frame in photo_frames(photos, limit, progress):
+Boxed = tuple[str, np.ndarray, Box | None, Box | None]  # name, frame, estimated box, true box (None: unknown)
+
+
+def measure(frames: Iterable[tuple[str, np.ndarray | None, Box | None]], total: int) -> tuple[Framing, list[Boxed]]:
+    """The framing of (name, frame or None when unreadable, true box or None) items, and each
+    readable frame with its estimated and true boxes; unreadable ones are skipped and named. A
+    one-line ValueError when none of the `total` images can be read."""
+    boxed, skipped = [], []
+    for name, frame, truth in frames:
         if frame is None:
             skipped.append(name)
         else:
-            coverages.append(photo_coverage(frame))
-    if not coverages:
-        raise ValueError(f"no readable photo among {len(photos)} to estimate the framing from")
-    return Framing(tuple(coverages), tuple(skipped), *coverage_range(coverages))
+            boxed.append((name, frame, car_box(frame), truth))
+    if not boxed:
+        raise ValueError(f"no readable photo among {total} to estimate the framing from")
+    coverages = [box_coverage(box, frame.shape) for _, frame, box, _ in boxed]
+    return Framing(tuple(coverages), tuple(skipped), *coverage_range(coverages)), boxed
+
+
+def estimate_framing(photos: list[Path], limit: int = LIMIT, progress: bool = True) -> Framing:
+    """The framing of a list of photo files (`measure`)."""
+    return measure(((name, frame, None) for name, frame in photo_frames(photos, limit, progress)), len(photos))[0]
 
 
 def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True) -> Iterator[tuple[str, np.ndarray, Box | None]]:
@@ -171,7 +181,7 @@ def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True) -> Iterato
         yield ds.rows[i]["file"], to_frame(linear_to_srgb(s["rgb"][..., :3])), mask_box(to_frame(car)[..., 0] >= 128)
 
 
-def contact_sheet(items: list[tuple[str, np.ndarray, Box | None, Box | None]], columns: int = 4,
+def contact_sheet(items: list[Boxed], columns: int = 4,
                   scale: int = 2) -> Image.Image:
     """Frames with the estimated box (red) and, where known, the true one (green), labelled with
     their coverages: what the estimate saw, for a person to check."""

@@ -131,10 +131,6 @@ class Plan:
         held = {round(j * (len(files) - 1) / max(1, k - 1)) for j in range(k)} if k > 1 else {len(files) // 2}
         return files, held
 
-    def training_photos(self) -> list[Path]:
-        files, held = self.photo_split()
-        return [f for j, f in enumerate(files) if j not in held]
-
     def split_photos(self) -> tuple[int, int]:
         """Links to the user's photos in DATA/photos_train and DATA/photos_gallery: every k-th photo
         (sorted by path) is held out for the gallery, the rest train. Deterministic, so parts of one
