@@ -20,9 +20,10 @@ def image_size(root: Path) -> tuple[int, int]:
     if t.ds is not None:
         w, h = t.ds.resolution
         return h, w
-    from PIL import Image
+    from PIL import Image, ImageOps
 
-    with Image.open(t.files[0]) as img:
+    with Image.open(t.files[0]) as img:  # as the photo is shown: a phone's portrait shot stands up
+        img = ImageOps.exif_transpose(img)
         return img.height, img.width
 
 

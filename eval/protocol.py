@@ -47,7 +47,10 @@ class SetInfo:
 
 
 def framing_of(recipe: dict) -> str:
-    """A generated set's framing from its recipe: a coverage range (photo-like) or the paper's rule."""
+    """A generated set's framing from its recipe: a coverage range (photo-like), the paper's rule,
+    or a turntable's camera path."""
+    if recipe.get("orbit"):
+        return "turntable orbit"
     camera = recipe.get("camera") or {}
     if "max_coverage" in camera:
         return f"{camera.get('min_coverage', 0):.2f}-{camera['max_coverage']:.2f}"

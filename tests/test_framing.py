@@ -178,3 +178,16 @@ def test_a_photo_is_read_upright_as_its_exif_orientation_says(tmp_path):
     assert photo[:15].mean() > 0.9 and photo[-15:].mean() < 0.1
     Image.fromarray(pixels).save(tmp_path / "plain.jpg", quality=95)  # no tag: as stored
     assert read_photo(tmp_path / "plain.jpg").shape == (30, 60, 3)
+    from eval.images import image_size
+
+    (tmp_path / "plain.jpg").unlink()
+    assert image_size(tmp_path) == (60, 30)  # the folder's first photo, upright
+
+
+def test_a_sets_framing_column_names_coverage_paper_rule_or_orbit():
+    from eval.protocol import framing_of
+
+    assert framing_of({"camera": {"min_coverage": 0.4, "max_coverage": 0.7}}) == "0.40-0.70"
+    assert framing_of({"camera": {"min_coverage": 0.08}}) == "paper's rule (>= 0.08)"
+    assert framing_of({"camera": {"min_coverage": 0.08}, "orbit": {"radius": 6.0}}) == "turntable orbit"
+    assert framing_of({}) == "-"
