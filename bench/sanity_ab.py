@@ -4,8 +4,9 @@
 
 Each run folder comes from `iae-eval reproduce --budget sanity [--set ...]` (OUT/runs/S0/full_seedN) or
 `iae-train fit --probe`. A committed probe-rows file (`LABEL_probe.jsonl` written here, or a
-`bench/objective_sweep.py` curve) joins the table and the curves as a reference; its seed is its
-rows' `seed` field, and nothing of it is copied. Writes, into --out: `table.md` (the last probe row of every run: moving-average
+`bench/objective_sweep.py` curve) joins the table and the curves as a reference; its seed comes
+from the `LABEL_training_options.json` beside it (else its rows' `seed` field), and nothing of it
+is copied, so a table can be redrawn from its committed files. Writes, into --out: `table.md` (the last probe row of every run: moving-average
 and raw normals, the raw curve's step-to-step swing over its last 4 probes, the two no-image bars,
 albedo, reflection, speckle, R's input sensitivity and colour correlation), `curves.png` (moving
 average solid, raw faint, the bars dashed) and per run its probe rows (`LABEL_probe.jsonl`) and
@@ -80,8 +81,11 @@ def main() -> None:
     for label, path, rows in runs:
         f = row_figures(rows)
         reference = path.is_file()  # a committed curve: nothing of it is copied
-        f["seed"] = (rows[-1].get("seed", "-") if reference
-                     else json.loads((path / "training_options.json").read_text())["config"]["run"]["seed"])
+        # a committed LABEL_probe.jsonl written here has its LABEL_training_options.json beside it
+        options = (path.with_name(path.name.removesuffix("_probe.jsonl") + "_training_options.json")
+                   if reference else path / "training_options.json")
+        f["seed"] = (json.loads(options.read_text())["config"]["run"]["seed"] if options.is_file()
+                     else rows[-1].get("seed", "-"))
         summary[label] = f
         lines.append(_line(label, f))
         if reference:

@@ -36,7 +36,8 @@ def test_every_sweep_variant_is_a_valid_config():
 
 
 def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
-    """A probe-rows file (a sweep's curve) joins the table beside run folders, its seed from its rows."""
+    """A probe-rows file (a sweep's curve, or one this script committed) joins the table beside run
+    folders, its seed from the options committed beside it or else from its rows."""
     import json
 
     def row(step: int, deg: float) -> dict:
@@ -61,6 +62,15 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
                            cwd=ROOT, capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
     assert until.returncode == 0, until.stderr[-2000:]
     assert "| ref_s21 | 21 | 500 | 38.5 (" in (out / "table.md").read_text()
+    # a file this script committed (LABEL_probe.jsonl, rows without seeds): its seed from the options beside it
+    committed = tmp_path / "full_probe.jsonl"
+    committed.write_text("".join(json.dumps({k: v for k, v in row(s, d).items() if k != "seed"}) + "\n"
+                                 for s, d in ((250, 45.0), (500, 38.5))))
+    (tmp_path / "full_training_options.json").write_text(json.dumps({"config": {"run": {"seed": 22}}}))
+    redraw = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"full={committed}"],
+                            cwd=ROOT, capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert redraw.returncode == 0, redraw.stderr[-2000:]
+    assert "| full | 22 | 500 | 38.5 (" in (out / "table.md").read_text()
     bad = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"x={tmp_path / 'none'}"],
                          cwd=ROOT, capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert bad.returncode != 0 and "expected LABEL=RUN_DIR" in bad.stderr
