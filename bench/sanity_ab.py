@@ -6,12 +6,13 @@ Each run folder comes from `iae-eval reproduce --budget sanity [--set ...]` (OUT
 `iae-train fit --probe`. A committed probe-rows file (`LABEL_probe.jsonl` written here, or a
 `bench/objective_sweep.py` curve) joins the table and the curves as a reference; its seed comes
 from the `LABEL_training_options.json` beside it (else its rows' `seed` field), and nothing of it
-is copied, so a table can be redrawn from its committed files. Writes, into --out: `table.md` (the last probe row of every run: moving-average
-and raw normals, the raw curve's step-to-step swing over its last 4 probes, the two no-image bars,
-albedo, reflection, speckle, R's input sensitivity and colour correlation), `curves.png` (moving
-average solid, raw faint, the bars dashed) and per run its probe rows (`LABEL_probe.jsonl`) and
-`LABEL_training_options.json`, so that every figure quoted from the table can be traced and redrawn.
-A label's seed is read from its training options. `--until STEP` reads every run up to that step
+is copied, so a table can be redrawn from its committed files. Writes, into --out: `table.md`
+(the last probe row of every run: moving-average and raw normals, the raw curve's step-to-step
+swing over its last 4 probes, the two no-image bars, albedo, reflection, speckle, R's input
+sensitivity and colour correlation), `curves.png` (moving average solid, raw faint, the bars
+dashed) and per run its probe rows (`LABEL_probe.jsonl`) and `LABEL_training_options.json`, so
+that every figure quoted from the table can be traced and redrawn. A run folder's seed is read
+from its training options. `--until STEP` reads every run up to that step
 only: a run stopped early (to be resumed) beside complete ones, compared at the same step.
 """
 from __future__ import annotations
