@@ -287,7 +287,8 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
         for path, hint in ((sheet, "--sheet"), (out, "--out")):
             if path is not None:
                 refuse_output(path, hint, force)
-        if (images / "dataset.json").is_file():  # a PBR set: the truth is in its material layer
+        pbr = (images / "dataset.json").is_file()  # a PBR set: the truth is in its material layer
+        if pbr:
             found, boxed = measure(pbr_frames(images, limit, not quiet), limit)
         else:
             files = image_files(images)
@@ -298,7 +299,7 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
                         "skipped": list(found.skipped),
                         "percentiles_10_50_90": np.percentile(found.coverages, [10, 50, 90]).round(3).tolist(),
                         "range": [found.low, found.high], "gen_options": found.gen_options()}
-        if boxed[0][3] is not None:
+        if pbr:  # (a frame without car pixels has no true box: coverage 0, as box_coverage says)
             e = np.asarray(found.coverages)
             t = np.array([box_coverage(truth, frame.shape) for _, frame, _, truth in boxed])
             err = np.abs(e - t)

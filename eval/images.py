@@ -11,7 +11,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from train.data import RealImages
+from train.data import RealImages, read_photo
 
 
 def image_size(root: Path) -> tuple[int, int]:
@@ -20,11 +20,7 @@ def image_size(root: Path) -> tuple[int, int]:
     if t.ds is not None:
         w, h = t.ds.resolution
         return h, w
-    from PIL import Image, ImageOps
-
-    with Image.open(t.files[0]) as img:  # as the photo is shown: a phone's portrait shot stands up
-        img = ImageOps.exif_transpose(img)
-        return img.height, img.width
+    return read_photo(t.files[0]).shape[:2]  # upright, as training reads it (EXIF orientation)
 
 
 def image_source(root: Path, size: tuple[int, int], limit: int | None = None) -> tuple[int, Iterator[np.ndarray]]:
