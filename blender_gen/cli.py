@@ -5,6 +5,7 @@ import json
 import math
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -398,15 +399,31 @@ def label_parts(models: tuple[str, ...], out: Path, preview: Path | None, length
 
     importlib.import_module("bpy")  # importing bpy takes over SIGINT below Python (Ctrl-C was ignored)
 
-    signal.signal(signal.SIGINT, signal.default_int_handler)  # so that one Ctrl-C stops the command
+    # One Ctrl-C stops the command. The flag holds it too when the KeyboardInterrupt lands in a garbage
+    # collector's callback, where Python swallows it; the loop checks the flag before each file it writes.
+    stop = {"asked": False}
+
+    def on_ctrl_c(signum: int, frame: object) -> None:
+        stop["asked"] = True
+        raise KeyboardInterrupt
+
+    def unraisable(info: "sys.UnraisableHookArgs") -> None:  # the swallowed Ctrl-C is in the flag: no traceback
+        if not isinstance(info.exc_value, KeyboardInterrupt):
+            sys.__unraisablehook__(info)
+
+    sys.unraisablehook = unraisable
+    signal.signal(signal.SIGINT, on_ctrl_c)
     try:
-        _label_targets(targets, forward, up, length)
+        _label_targets(targets, forward, up, length, lambda: stop["asked"])
+        if stop["asked"]:
+            raise KeyboardInterrupt
     except KeyboardInterrupt:
         click.echo("interrupted: the rules files not yet written are not written", err=True)
         sys.exit(130)
 
 
-def _label_targets(targets: list, forward: str | None, up: str | None, length: float | None) -> None:
+def _label_targets(targets: list, forward: str | None, up: str | None, length: float | None,
+                   stop_asked: Callable[[], bool] = lambda: False) -> None:
     from .cars.faces import read_car
     from .cars.importer import model_files
     from .cars.labeller import infer, preview as draw_preview, propose_rules, rules_reproduce
@@ -424,6 +441,8 @@ def _label_targets(targets: list, forward: str | None, up: str | None, length: f
             click.echo(f"{name}: placed {line}")
         areas = table.areas()
         text = propose_rules(table, lab, split_car(token)[0].name, length=length)
+        if stop_asked():
+            raise KeyboardInterrupt
         rules_path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_target(rules_path) as tmp:
             Path(tmp).write_text(text, encoding="utf-8")
@@ -440,6 +459,8 @@ def _label_targets(targets: list, forward: str | None, up: str | None, length: f
         click.echo(f"  the proposed rules give the inferred part to {100 * reproduced:.1f}% "
                    "of the area")
         if png is not None:
+            if stop_asked():
+                raise KeyboardInterrupt
             png.parent.mkdir(parents=True, exist_ok=True)
             with atomic_target(png) as tmp:
                 draw_preview(table, lab.labels, lab.forward, lab.up, tmp, title=f"{name}: inferred parts")

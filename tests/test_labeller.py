@@ -295,16 +295,28 @@ def test_one_ctrl_c_stops_label_parts_with_130_and_no_rules(tmp_path):
     import signal
     import time
 
-    model = ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf"  # about 15 s of labelling
-    out = tmp_path / "beetle.toml"
+    from blender_gen.cars.rules import load_rules
+
+    # three models; Ctrl-C as soon as the first one's rules are written, whatever the machine's speed
+    gazebo = ASSETS / "cars3d_cc_by" / "gazebo"
+    models = [ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf",
+              gazebo / "hatchback" / "meshes" / "hatchback.obj", gazebo / "suv" / "meshes" / "suv.obj"]
+    out = tmp_path / "rules"
     proc = subprocess.Popen([sys.executable, "-c", "from blender_gen.cli import main; main()", "label-parts",
-                             str(model), "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    time.sleep(4)
+                             *map(str, models), "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    first = out / "vehicle.toml"
+    deadline = time.monotonic() + 120
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "label-parts ended before its first rules file was written"
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
-    assert not out.exists()
+    assert load_rules(first)  # the file written before the Ctrl-C is whole
+    assert not (out / "suv.toml").exists()  # the model not yet started writes nothing
+    assert sorted(p.name for p in out.iterdir()) in (["vehicle.png", "vehicle.toml"], ["vehicle.toml"],
+                                                     ["hatchback.toml", "vehicle.png", "vehicle.toml"])
 
 
 @pytest.mark.skipif(not (ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf").is_file(),
