@@ -49,7 +49,31 @@ def run_label(cfg: Config) -> str:
     if not cfg.loss.rendering_cycle:
         parts.append("w/o rendering cycle")
     parts += [f"w/o {c}" for c in "ANF" if c not in cfg.model.inputs]
-    return "Ours, " + ", ".join(parts) if parts else "Ours (full)"
+    label = "Ours, " + ", ".join(parts) if parts else "Ours (full)"
+    changed = objective_changes(cfg)
+    if changed:  # a run trained with --set on its objective is not the paper's row of that name
+        label += ", " + ", ".join(changed[:3]) + (f" (+{len(changed) - 3} more)" if len(changed) > 3 else "")
+    return label
+
+
+# the ablation switches the label already names
+_NAMED = ("loss.shared_discriminator", "loss.decomposition_cycle", "loss.rendering_cycle")
+
+
+def objective_changes(cfg: Config) -> list[str]:
+    """The objective settings (`key=value`) in which a run differs from the nearer of the two objectives
+    `reproduce` trains (the measured defaults and the paper's), e.g. ["loss.w_chroma=0.0"]."""
+    from train.config import is_objective_key, load_config
+
+    have = cfg.to_dict()
+    best: list[str] | None = None
+    for ref in (Config().to_dict(), load_config("paper").to_dict()):
+        diff = [f"{section}.{name}={value}" for section in ("loss", "model") for name, value in have[section].items()
+                if is_objective_key(f"{section}.{name}") and f"{section}.{name}" not in _NAMED
+                and ref[section].get(name) != value]
+        if best is None or len(diff) < len(best):
+            best = diff
+    return best or []
 
 
 def _png_bytes(img: np.ndarray) -> bytes:

@@ -480,3 +480,16 @@ def test_h_can_run_at_the_sets_own_resolution(report, tmp_path):
         assert info["network_size"] == size and info["resolution"] == [128, 64]
     rows, summary = score_predictions(pbr, tmp_path / "native", progress=False)
     assert summary["samples"] == 2 and np.isfinite(summary["normal_mean_deg"])
+
+
+def test_a_run_trained_with_a_changed_objective_is_not_labelled_as_the_papers_row():
+    from eval.report import run_label
+    from train.config import load_config, objective_overrides
+
+    assert run_label(load_config("cpu-small")) == "Ours (full)"
+    assert run_label(load_config("cpu-small", objective_overrides("cpu-small", "paper"))) == "Ours (full)"
+    assert run_label(load_config("cpu-small", ["model.inputs=NF"])) == "Ours, w/o A"
+    assert run_label(load_config("cpu-small", ["loss.w_chroma=0"])) == "Ours (full), loss.w_chroma=0.0"
+    assert run_label(load_config("cpu-small", ["loss.decomposition_cycle=false", "loss.w_adv_m=0.5"])) == \
+        "Ours, w/o decomp. cycle, loss.w_adv_m=0.5"
+    assert run_label(load_config("cyclegan")) == "CycleGAN"  # its objective is its own

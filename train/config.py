@@ -543,7 +543,7 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     return validate(cfg)
 
 
-def _is_objective(key: str) -> bool:
+def is_objective_key(key: str) -> bool:
     """The training objective's settings: every loss weight and choice, and what R is (the paper's
     network or the deferred shader, and the shader's settings); not the networks' widths."""
     section, name = key.split(".")
@@ -560,7 +560,7 @@ def objective_overrides(preset: str, objective: str) -> list[str]:
     want = (Config() if objective == "default" else load_config("paper")).to_dict()
     out = []
     for key in _all_keys(Config()):
-        if "." in key and _is_objective(key):
+        if "." in key and is_objective_key(key):
             section, name = key.split(".")
             if have[section][name] != want[section][name]:
                 value = want[section][name]
