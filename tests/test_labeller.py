@@ -291,7 +291,7 @@ def test_rules_limited_by_facing(tmp_path):
 
 @pytest.mark.skipif(not (ASSETS / "cars3d_cc_by" / "metadrive" / "beetle" / "vehicle.gltf").is_file(),
                     reason="needs ../shared/assets")
-def test_one_ctrl_c_stops_label_parts_with_130_and_no_rules(tmp_path):
+def test_one_ctrl_c_stops_label_parts_with_130_before_its_next_file(tmp_path):
     import signal
     import time
 
