@@ -35,11 +35,13 @@ def run(kind: str, out: Path, count: int, workers: int, extra: list[str]) -> dic
 
 
 BARE = """
-import sys, time
+import os, sys, time
+w, h, start, count, threads = (int(v) for v in sys.argv[1:6])
+if sys.argv[6]:  # pinned as iae-gen pins its workers
+    os.sched_setaffinity(0, [int(c) for c in sys.argv[6].split(",")])
 import bpy
 from blender_gen.recipe import Recipe
 from blender_gen.render import SampleRenderer
-w, h, start, count, threads = (int(v) for v in sys.argv[1:6])
 r = SampleRenderer(Recipe(kind="intrinsics", seed=0, width=w, height=h, background="environment"), threads=threads)
 for i in range(start, start + 4):  # warm: the cars and skies of the timed samples' blocks are built
     r.set_up(i); bpy.ops.render.render(write_still=False)
@@ -53,11 +55,15 @@ print(count / spent)
 
 def bare_rate(resolution: str, count: int, workers: int) -> float:
     """Cycles' own render rate: `workers` processes render disjoint samples side by side, each timing
-    only bpy.ops.render.render; their rates add up."""
+    only bpy.ops.render.render and pinned to the CPUs `iae-gen` gives its workers; their rates add up."""
+    from blender_gen.generate import cpu_groups, worker_threads
+
     w, h = resolution.split("x")
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    threads = worker_threads(workers)
+    groups = cpu_groups(workers)
+    pins = [",".join(map(str, groups[k])) if groups else "" for k in range(workers)]
     per = max(1, count // workers)
-    procs = [subprocess.Popen([sys.executable, "-c", BARE, w, h, str(k * (per + 4)), str(per), str(threads)],
+    procs = [subprocess.Popen([sys.executable, "-c", BARE, w, h, str(k * (per + 4)), str(per), str(threads), pins[k]],
                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
              for k in range(workers)]
     return sum(float(p.communicate()[0].strip().splitlines()[-1]) for p in procs)

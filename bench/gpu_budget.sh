@@ -5,24 +5,30 @@
 # protocol --height 256 --width 512 ...` (docs/normals_from_shading.md, "The default at the paper's
 # resolution").
 #   bash bench/gpu_budget.sh PACK MINUTES OUT
+# STEPS (default 20000, the budget's schedule; the decay starts halfway) and ORACLE_SEEDS (default 1)
+# shorten the schedule and pick the oracle's seeds: STEPS=2800 completes a schedule, decay included,
+# in the minutes one GPU lease allows.
 set -u
 PACK=$1; MIN=$2; O=$3
+STEPS=${STEPS:-20000}; ORACLE_SEEDS=${ORACLE_SEEDS:-1}
 PY=${PY:-python3}
 W=$(mktemp -d)
 mkdir -p "$O"
 export PYTHONUNBUFFERED=1
 if command -v nvidia-cuda-mps-control >/dev/null; then nvidia-cuda-mps-control -d && echo "CUDA MPS on"; fi
-G=(bench/objective_sweep.py grid --data "$PACK" --variants bench/variants_gpu.toml --steps 20000 --every 250 --batch 1
+G=(bench/objective_sweep.py grid --data "$PACK" --variants bench/variants_gpu.toml --steps "$STEPS" --every 250 --batch 1
    --decay 0.5 --minutes "$MIN" --out "$O" --save-dir "$W")
 $PY "${G[@]}" --only default --seeds 0 1 &
-$PY "${G[@]}" --only oracle --seeds 1 &
+$PY "${G[@]}" --only oracle --seeds $ORACLE_SEEDS &
 wait
 # the picture builds each model from its variant's --set values, read from the variants file
 P=$($PY -c "import sys; sys.path.insert(0, 'bench'); from objective_sweep import load_variants
 print(','.join(load_variants('bench/variants_gpu.toml')['default']['set']))")
 R=()
 for s in 0 1; do [ -f "$W/default_s$s.safetensors" ] && R+=("seed $s=$W/default_s$s.safetensors,$P"); done
-[ -f "$W/oracle_s1.safetensors" ] && R+=("oracle=$W/oracle_s1.safetensors,model.kind=oracle")
+for s in $ORACLE_SEEDS; do
+  [ -f "$W/oracle_s$s.safetensors" ] && R+=("oracle, seed $s=$W/oracle_s$s.safetensors,model.kind=oracle")
+done
 [ ${#R[@]} -gt 0 ] && $PY bench/objective_sweep.py picture --data "$PACK" --config paper --samples 4 --scale 1 \
   --out "$O/default_h.jpg" "${R[@]}"
 rm -rf "$W"

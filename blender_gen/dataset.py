@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
-import OpenEXR
 
 FORMAT_VERSION = 1
 LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
@@ -158,6 +157,8 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], half: bool = True) -> N
             raise ValueError(f"layer {name!r}: expected {len(names)} channels, got shape {arr.shape}")
         for i, ch in enumerate(names):
             channels[f"{name}.{ch}"] = np.ascontiguousarray(arr[..., i].astype(dtype))
+    import OpenEXR  # imported where used: training on packed tensors reads no EXR
+
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_target(path) as tmp, OpenEXR.File(header, channels) as f:
         f.write(str(tmp))
@@ -174,6 +175,8 @@ def save_png(path: Path, image) -> None:
 
 def read_exr_channels(path: Path) -> dict[str, np.ndarray]:
     """Every channel of every part of an EXR file, by its full name."""
+    import OpenEXR
+
     try:
         f = OpenEXR.File(str(path), separate_channels=True)
     except Exception as exc:  # OpenEXR raises bare exceptions for unreadable files

@@ -1,6 +1,7 @@
 """Blender-free parts: material table, catalogue geometry, cameras, env lookup, format."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -237,3 +238,31 @@ def test_no_import_circles_between_project_modules():
                       and a not in ("blender_gen.cars", "train", "eval", "blender_gen")
                       and b not in ("blender_gen.cars", "train", "eval", "blender_gen")})
     assert not circles, circles
+
+
+def _affinity() -> list[int]:
+    return sorted(os.sched_getaffinity(0))
+
+
+def test_worker_processes_get_disjoint_cpu_groups(monkeypatch):
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from blender_gen.generate import cpu_groups, pin_worker, worker_threads
+
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert cpu_groups(2) == [[0, 1], [2, 3]] and worker_threads(2) == 2
+    assert cpu_groups(3) == [[0], [1], [2, 3]]
+    assert cpu_groups(1) is None and cpu_groups(5) is None  # one worker keeps every CPU; too many are not pinned
+    monkeypatch.setenv("IAE_PIN_WORKERS", "0")
+    assert cpu_groups(2) is None
+    monkeypatch.undo()
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        pytest.skip("needs two CPUs")
+    # spawned workers pin themselves in turn, as iae-gen's do, before any Blender thread starts
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(2, mp_context=ctx, initializer=pin_worker, initargs=(cpu_groups(2), ctx.Value("i", 0))) as pool:
+        futures = [pool.submit(_affinity) for _ in range(8)]
+        seen = {tuple(f.result()) for f in futures}
+    assert seen and seen <= set(map(tuple, cpu_groups(2)))  # unpinned, a worker would see every CPU
