@@ -25,15 +25,25 @@ def main() -> None:
     ap.add_argument("--resolution", default="512x256")
     ap.add_argument("--noise-threshold", type=float, nargs="+", default=[Recipe.noise_threshold],
                     help="adaptive sampling thresholds of the timed renders (the reference keeps the default)")
+    ap.add_argument("--denoise", nargs="+", default=["FAST:FAST"], metavar="QUALITY:PREFILTER",
+                    help="OIDN quality (FAST, BALANCED, HIGH) and prefilter (FAST, ACCURATE) of the timed renders; "
+                         "the generator's is FAST:FAST, which the reference keeps")
     args = ap.parse_args()
+    denoise = []
+    for d in args.denoise:
+        q, _, pf = d.upper().partition(":")
+        if q not in ("FAST", "BALANCED", "HIGH") or pf not in ("FAST", "ACCURATE", "NONE"):
+            ap.error(f"--denoise {d!r}: expected QUALITY:PREFILTER, e.g. HIGH:ACCURATE")
+        denoise.append((q, pf))
     w, h = (int(v) for v in args.resolution.split("x"))
-    def renderer(spp: int, threshold: float = Recipe.noise_threshold):
+    def renderer(spp: int, threshold: float = Recipe.noise_threshold, quality: str = "FAST", prefilter: str = "FAST"):
         # views_per_car = views: one car and environment, so every frame is a steady-state
         # frame. A fresh renderer per sample count: Cycles' persistent session keeps the
         # sample count of its first render.
         recipe = Recipe(kind="pbr", seed=5, width=w, height=h, cars=("procedural:heldout",), samples=spp,
                         views_per_car=args.views, noise_threshold=threshold)
         r = make_renderer(recipe, threads=0)
+        r.scene.cycles.denoising_quality, r.scene.cycles.denoising_prefilter = quality, prefilter
         r.render_layers(0)  # builds the car, the sky and the light-sampling map
         return r
 
@@ -45,17 +55,19 @@ def main() -> None:
     ref_s = (time.perf_counter() - t0) / args.views
     print(f"reference: {args.reference} samples/pixel, {ref_s:.1f} s/frame", flush=True)
     results = []
-    for spp, threshold in ((s, t) for s in args.samples for t in args.noise_threshold):
-        r = renderer(spp, threshold)
+    for spp, threshold, (quality, prefilter) in ((s, t, d) for s in args.samples for t in args.noise_threshold
+                                                 for d in denoise):
+        r = renderer(spp, threshold, quality, prefilter)
         times, errs = [], []
         for i in range(args.views):
             t = time.perf_counter()
             img = r.render_layers(i)[0]["rgb"]
             times.append(time.perf_counter() - t)
             errs.append(float(np.sqrt(np.mean((linear_to_srgb(img) - ref[i]) ** 2))))
-        results.append({"samples": spp, "noise_threshold": threshold, "s_per_frame": float(np.mean(times)),
+        results.append({"samples": spp, "noise_threshold": threshold, "denoise": f"{quality}:{prefilter}",
+                        "s_per_frame": float(np.mean(times)),
                         "rms_srgb": float(np.mean(errs))})
-        print(f"pbr {w}x{h} {spp:>3} samples/pixel (adaptive to {threshold:g}, OIDN): {np.mean(times):.2f} s/frame, "
+        print(f"pbr {w}x{h} {spp:>3} samples/pixel (adaptive to {threshold:g}, OIDN {quality}:{prefilter}): {np.mean(times):.2f} s/frame, "
               f"RMS error vs {args.reference} spp {np.mean(errs):.4f} (sRGB 0..1)", flush=True)
     print(json.dumps({"reference_s_per_frame": ref_s, "results": results}, indent=2))
 
