@@ -250,6 +250,8 @@ def test_worker_processes_get_disjoint_cpu_groups(monkeypatch):
 
     from blender_gen.generate import cpu_groups, pin_worker, worker_threads
 
+    if not hasattr(os, "sched_getaffinity"):
+        pytest.skip("CPU affinity is a Linux feature")
     monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2, 3})
     assert cpu_groups(2) == [[0, 1], [2, 3]] and worker_threads(2) == 2
     assert cpu_groups(3) == [[0], [1], [2, 3]]
