@@ -63,14 +63,14 @@ _NAMED = ("loss.shared_discriminator", "loss.decomposition_cycle", "loss.renderi
 def objective_changes(cfg: Config) -> list[str]:
     """The objective settings (`key=value`) in which a run differs from the nearer of the two objectives
     `reproduce` trains (the measured defaults and the paper's), e.g. ["loss.w_chroma=0.0"]."""
-    from train.config import is_objective_key, load_config
+    from train.config import load_config, objective_differences
 
     have = cfg.to_dict()
     best: list[str] | None = None
-    for ref in (Config().to_dict(), load_config("paper").to_dict()):
-        diff = [f"{section}.{name}={value}" for section in ("loss", "model") for name, value in have[section].items()
-                if is_objective_key(f"{section}.{name}") and f"{section}.{name}" not in _NAMED
-                and ref[section].get(name) != value]
+    for ref in (Config(), load_config("paper")):
+        keys = [k for k in objective_differences(cfg, ref) if k not in _NAMED]
+        keys.sort(key=lambda k: not k.startswith("loss."))  # the loss settings first, then R's
+        diff = [f"{k}={have[k.split('.')[0]][k.split('.')[1]]}" for k in keys]
         if best is None or len(diff) < len(best):
             best = diff
     return best or []

@@ -543,7 +543,7 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     return validate(cfg)
 
 
-def is_objective_key(key: str) -> bool:
+def _is_objective(key: str) -> bool:
     """The training objective's settings: every loss weight and choice, and what R is (the paper's
     network or the deferred shader, and the shader's settings); not the networks' widths."""
     section, name = key.split(".")
@@ -556,15 +556,25 @@ def objective_overrides(preset: str, objective: str) -> list[str]:
     paper's R and Eq. 7). Only the values that differ from the preset's are listed."""
     if objective not in ("default", "paper"):
         raise ConfigError(f"objective {objective!r}: expected 'default' or 'paper'")
-    have = load_config(preset).to_dict()
-    want = (Config() if objective == "default" else load_config("paper")).to_dict()
+    target = Config() if objective == "default" else load_config("paper")
+    want = target.to_dict()
     out = []
-    for key in _all_keys(Config()):
-        if "." in key and is_objective_key(key):
+    for key in objective_differences(load_config(preset), target):
+        section, name = key.split(".")
+        value = want[section][name]
+        out.append(f"{key}={json.dumps(value) if not isinstance(value, str) else value}")
+    return out
+
+
+def objective_differences(a: Config, b: Config) -> list[str]:
+    """The objective settings (`section.name`, in the config's order) in which two configs differ."""
+    da, db = a.to_dict(), b.to_dict()
+    out = []
+    for key in _all_keys(a):
+        if "." in key and _is_objective(key):
             section, name = key.split(".")
-            if have[section][name] != want[section][name]:
-                value = want[section][name]
-                out.append(f"{key}={json.dumps(value) if not isinstance(value, str) else value}")
+            if da[section][name] != db[section][name]:
+                out.append(key)
     return out
 
 
