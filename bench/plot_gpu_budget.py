@@ -65,9 +65,10 @@ def main() -> None:
                 ax.axhline(bars[f"probe/prior_{key}"], ls="-.", color="gray", lw=1, label="per-pixel prior (GPU probe)")
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("optimiser step")
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="center right", fontsize=7)
-    fig.tight_layout(rect=(0, 0, 0.74, 1))
-    fig.savefig(a.out, dpi=90)
+    fig.tight_layout()
+    # the legend sits right of the panels; the tight box keeps no empty margin beside it
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=7)
+    fig.savefig(a.out, dpi=90, bbox_inches="tight")
     plt.close(fig)
     print(f"wrote {a.out}")
 
