@@ -7,20 +7,26 @@
 #   bash bench/gpu_budget.sh PACK MINUTES OUT
 # STEPS (default 20000, the budget's schedule; the decay starts halfway) and ORACLE_SEEDS (default 1)
 # shorten the schedule and pick the oracle's seeds: STEPS=2800 completes a schedule, decay included,
-# in the minutes one GPU lease allows.
+# in the minutes one GPU lease allows. RUNS (a folder, e.g. out/gpu_runs) keeps a run folder per run
+# there: a rerun with the same RUNS goes on from each run's last stop, so the whole schedule can be
+# trained in commands of under 10 minutes; OUT then gets each run's curve from step 0.
 set -u
 PACK=$1; MIN=$2; O=$3
-STEPS=${STEPS:-20000}; ORACLE_SEEDS=${ORACLE_SEEDS:-1}
+STEPS=${STEPS:-20000}; ORACLE_SEEDS=${ORACLE_SEEDS:-1}; RUNS=${RUNS:-}
 PY=${PY:-python3}
 W=$(mktemp -d)
 mkdir -p "$O"
 export PYTHONUNBUFFERED=1
 if command -v nvidia-cuda-mps-control >/dev/null; then nvidia-cuda-mps-control -d && echo "CUDA MPS on"; fi
 G=(bench/objective_sweep.py grid --data "$PACK" --variants bench/variants_gpu.toml --steps "$STEPS" --every 250 --batch 1
-   --decay 0.5 --minutes "$MIN" --out "$O" --save-dir "$W")
+   --decay 0.5 --minutes "$MIN" --out "$O" --save-dir "$W" ${RUNS:+--runs-dir "$RUNS"})
 $PY "${G[@]}" --only default --seeds 0 1 &
 $PY "${G[@]}" --only oracle --seeds $ORACLE_SEEDS &
 wait
+# a resumed run's OUT file holds this command's rows only; its run folder holds them all
+if [ -n "$RUNS" ]; then
+  for r in "$RUNS"/*/; do r=${r%/}; [ -f "$r/stats.jsonl" ] && cp "$r/stats.jsonl" "$O/$(basename "$r").jsonl"; done
+fi
 # the picture builds each model from its variant's --set values, read from the variants file
 P=$($PY -c "import sys; sys.path.insert(0, 'bench'); from objective_sweep import load_variants
 print(','.join(load_variants('bench/variants_gpu.toml')['default']['set']))")
