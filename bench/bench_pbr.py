@@ -67,8 +67,9 @@ def main() -> None:
         results.append({"samples": spp, "noise_threshold": threshold, "denoise": f"{quality}:{prefilter}",
                         "s_per_frame": float(np.mean(times)),
                         "rms_srgb": float(np.mean(errs))})
-        print(f"pbr {w}x{h} {spp:>3} samples/pixel (adaptive to {threshold:g}, OIDN {quality}:{prefilter}): {np.mean(times):.2f} s/frame, "
-              f"RMS error vs {args.reference} spp {np.mean(errs):.4f} (sRGB 0..1)", flush=True)
+        print(f"pbr {w}x{h} {spp:>3} samples/pixel (adaptive to {threshold:g}, OIDN {quality}:{prefilter}): "
+              f"{np.mean(times):.2f} s/frame, RMS error vs {args.reference} spp {np.mean(errs):.4f} (sRGB 0..1)",
+              flush=True)
     print(json.dumps({"reference_s_per_frame": ref_s, "results": results}, indent=2))
 
 

@@ -7,9 +7,10 @@
 #   bash bench/gpu_budget.sh PACK MINUTES OUT
 # STEPS (default 20000, the budget's schedule; the decay starts halfway) and ORACLE_SEEDS (default 1)
 # shorten the schedule and pick the oracle's seeds: STEPS=2700 completes a schedule, decay included,
-# within one 10-minute command (7.9 minutes for the three runs on an H100). RUNS (a folder, e.g. out/gpu_runs) keeps a run folder per run
-# there: a rerun with the same RUNS goes on from each run's last stop, so the whole schedule can be
-# trained in commands of under 10 minutes; OUT then gets each run's curve from step 0.
+# within one 10-minute command (7.9 minutes for the three runs on an H100). RUNS (a folder, e.g.
+# out/gpu_runs) keeps a run folder per run there: a rerun with the same RUNS goes on from each run's
+# last stop, so the whole schedule can be trained in commands of under 10 minutes; OUT then gets
+# each run's curve from step 0.
 set -u
 PACK=$1; MIN=$2; O=$3
 STEPS=${STEPS:-20000}; ORACLE_SEEDS=${ORACLE_SEEDS:-1}; RUNS=${RUNS:-}

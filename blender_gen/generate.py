@@ -181,10 +181,11 @@ def usable_cpus() -> list[int]:
 
 def cpu_groups(workers: int) -> list[list[int]] | None:
     """Disjoint sets of the usable CPUs, one per worker process; None for one worker (it keeps every
-    CPU) and when there are fewer CPUs than workers. Blender's TBB pool sizes itself from the process's CPUs, and an idle TBB worker spins in
-    sched_yield: unpinned, every worker process kept a thread busy on a core of its own (measured:
-    one worker with one Cycles thread used 1.9 cores at 512x256, pinned 1.0 at the same rate).
-    IAE_PIN_WORKERS=0 leaves them unpinned (to measure the difference, or to let a scheduler place them)."""
+    CPU) and when there are fewer CPUs than workers. Blender's TBB pool sizes itself from the
+    process's CPUs, and an idle TBB worker spins in sched_yield: unpinned, every worker process kept
+    a thread busy on a core of its own (measured: one worker with one Cycles thread used 1.9 cores
+    at 512x256, pinned 1.0 at the same rate). IAE_PIN_WORKERS=0 leaves them unpinned (to measure
+    the difference, or to let a scheduler place them)."""
     cpus = usable_cpus()
     if workers < 2 or workers > len(cpus) or os.environ.get("IAE_PIN_WORKERS", "1") == "0":
         return None
