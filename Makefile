@@ -24,7 +24,7 @@ DEMO := $(OUT)/demo
 DEMO_STEPS ?= 300
 # what the demo's report shows beside its own short run: a trained model (committed with its figures)
 DEMO_REFERENCE := A trained model, for comparison with this demo's $(DEMO_STEPS)-step run above: H of the full \
-model at the cpu budget (make reproduce BUDGET=cpu; its 5000 steps at 64x128 took 109 min on a 2-core CPU), seed 21, \
+model at the cpu budget (make reproduce BUDGET=cpu; its 5000 steps at 64x128 took about 105 min on a 2-core CPU), seed 21, \
 moving-average weights, on four Table-3 images of that comparison. For each: the image, then normal, albedo and \
 reflection rows with the ground truth, H's map, the constant predictor and the per-pixel prior \
 (results/cpu_shared_gain/decomposition_grid_shared_gain_s21.jpg; figures in README.md, Results at a glance).
@@ -36,11 +36,11 @@ reflection rows with the ground truth, H's map, the constant predictor and the p
 # Every step resumes if interrupted. Two views per car, so the 96 intrinsics show every training
 # car the Table-3 set draws (with four, one of its cars was missing from training).
 demo: $(STAMP)
-	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics --count 96 --views-per-car 2 --workers 2
+	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics --count 96 --views-per-car 2
 	$(VENV)/bin/iae-gen inspect $(DEMO)/intrinsics --grid $(DEMO)/intrinsics_grid.png --quiet
-	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_real --count 24 --seed 1 --workers 2
-	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_eval --count 12 --seed 2 --cars procedural:train --envmap procedural --workers 2
-	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics_unseen --count 24 --seed 3 --workers 2
+	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_real --count 24 --seed 1
+	$(VENV)/bin/iae-gen pbr --out $(DEMO)/pbr_eval --count 12 --seed 2 --cars procedural:train --envmap procedural
+	$(VENV)/bin/iae-gen intrinsics --out $(DEMO)/intrinsics_unseen --count 24 --seed 3
 	$(VENV)/bin/iae-gen cars --out $(DEMO)
 	$(VENV)/bin/iae-train fit --config cpu-small --intrinsics $(DEMO)/intrinsics --real $(DEMO)/pbr_real \
 		--probe $(DEMO)/pbr_eval --run-dir $(DEMO)/run --max-steps $(DEMO_STEPS) --set run.probe_every=50

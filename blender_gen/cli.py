@@ -123,6 +123,27 @@ def _rules_arg(rules: str | None) -> str | None:
     return None if rules is None else "auto" if rules == "auto" else str(Path(rules).resolve())
 
 
+class WorkersType(click.ParamType):
+    """A number of Blender processes (1-256), or auto."""
+
+    name = "N|auto"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, int) or str(value).strip().lower() == "auto":
+            return value if isinstance(value, int) else "auto"
+        try:
+            n = int(value)
+        except ValueError:
+            n = 0
+        if not 1 <= n <= 256:
+            self.fail(f"{value!r}: expected a number of processes from 1 to 256, or auto", param, ctx)
+        return n
+
+
+WORKERS_HELP = ("Blender processes rendering in parallel, each pinned to its share of the CPUs; auto: one per "
+                "usable CPU, at most 8, and at least 8 samples each. The files are the same bytes either way.")
+
+
 def _common_options(fn):
     opts = [
         click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -144,8 +165,7 @@ def _common_options(fn):
                           "procedural:train, 8 skies) or procedural:heldout (4 others). Default: intrinsics "
                           "procedural, pbr procedural:heldout (the stand-in for real photos)."),
         click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel."),
-        click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
-                     help="Blender processes rendering in parallel."),
+        click.option("--workers", default="auto", show_default=True, type=WorkersType(), help=WORKERS_HELP),
         click.option("--shard", default=None, help="I/N: render only samples with index % N == I (batch schedulers)."),
         click.option("--radius-min", default=CameraRanges.radius_min, show_default=True, type=float,
                      help="Minimum horizontal camera distance from the car centre (m)."),
@@ -276,7 +296,7 @@ def pbr(**o) -> None:
 @click.option("--samples", default=None, type=click.IntRange(1, 1 << 16), help="Cycles samples per pixel (--pbr: 8).")
 @click.option("--resolution", default="512x256", show_default=True, help="WIDTHxHEIGHT in pixels.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256))
+@click.option("--workers", default="auto", show_default=True, type=WorkersType(), help=WORKERS_HELP)
 @click.option("--quiet", is_flag=True)
 def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, envmap, env_rotation, paint, pbr, background,
               samples, resolution, seed, workers, quiet) -> None:

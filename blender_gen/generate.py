@@ -179,6 +179,19 @@ def usable_cpus() -> list[int]:
         return list(range(os.cpu_count() or 1))
 
 
+MAX_AUTO_WORKERS = 8  # past this, more Cycles threads per worker do as well as more processes
+MIN_SAMPLES_PER_WORKER = 8  # a worker's start-up (Blender, scene) costs about as much as a few samples
+
+
+def auto_workers(todo: int) -> int:
+    """`--workers auto`: one Blender process per usable CPU, at most 8, and at least 8 samples
+    each, so a short run does not pay for starting processes it hardly uses. Pinned workers with
+    one Cycles thread each beat one process with every thread (measured on a 2-core CPU: 16.5
+    against 8.5 intrinsics samples/s at 512x256)."""
+    by_work = max(1, -(-todo // MIN_SAMPLES_PER_WORKER))
+    return max(1, min(len(usable_cpus()), MAX_AUTO_WORKERS, by_work))
+
+
 def cpu_groups(workers: int) -> list[list[int]] | None:
     """Disjoint sets of the usable CPUs, one per worker process; None for one worker (it keeps every
     CPU) and when there are fewer CPUs than workers. Blender's TBB pool sizes itself from the
@@ -225,16 +238,18 @@ def _render_one(args: tuple[int, str]) -> dict:
     return _worker.render(index, Path(out))
 
 
-def generate(recipe: Recipe, out: Path, count: int, workers: int = 1, shard: str | None = None,
+def generate(recipe: Recipe, out: Path, count: int, workers: int | str = 1, shard: str | None = None,
              progress: bool = True) -> dict:
     """Render samples [0, count) of this shard that are not finished yet; returns dataset.json.
+
+    `workers` is a number of Blender processes or "auto" (`auto_workers` of the samples left).
 
     The folder is locked for the whole run, so a second generator on it fails at once.
     """
     if not 1 <= count <= MAX_INDEX + 1:
         raise GenerationError(f"--count {count}: expected 1 to {MAX_INDEX + 1}")
-    if workers < 1:
-        raise GenerationError(f"--workers {workers}: expected at least 1")
+    if workers != "auto" and (not isinstance(workers, int) or workers < 1):
+        raise GenerationError(f"--workers {workers}: expected at least 1, or auto")
     shard_t = parse_shard(shard)
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -276,13 +291,15 @@ def legacy_recipe(recipe: Recipe, out: Path) -> Recipe:
     return recipe
 
 
-def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int, shard_t: tuple[int, int],
+def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int | str, shard_t: tuple[int, int],
                      progress: bool) -> dict:
     fresh = not (out / "dataset.json").exists()
     recipe = legacy_recipe(recipe, out)
     writer, done_rows = prepare_output(out, recipe, count, shard_t)
     done = {r["index"] for r in done_rows}
     todo = [i for i in range(count) if i % shard_t[1] == shard_t[0] and i not in done]
+    if workers == "auto":
+        workers = auto_workers(len(todo))
     total = len(done) + len(todo)
     threads = worker_threads(workers)
     bar = tqdm(total=total, initial=len(done), unit="sample", desc=f"{recipe.kind} {out.name}",

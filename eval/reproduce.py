@@ -150,7 +150,7 @@ class Plan:
 
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.data_dir, self.seed
-        common = ["--resolution", b.render, "--workers", str(max(1, min(os.cpu_count() or 1, 8))), "--quiet"]
+        common = ["--resolution", b.render, "--workers", "auto", "--quiet"]
         if self.coverage is not None:  # every set framed like the photos (the stand-in and Table-3 sets too)
             common += ["--min-coverage", f"{self.coverage[0]:.2f}", "--max-coverage", f"{self.coverage[1]:.2f}"]
         # iae-gen's --cars is repeated per token (a file name may hold a comma)

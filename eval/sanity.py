@@ -118,7 +118,7 @@ class SanityPlan:
 
     def dataset_commands(self) -> list[tuple[str, list[str]]]:
         b, o, s = self.budget, self.out / "data", self.seed
-        common = ["--resolution", b.render, "--workers", "2", "--quiet"]
+        common = ["--resolution", b.render, "--workers", "auto", "--quiet"]
         return [
             ("intrinsics (training cars and skies, black background)",
              ["intrinsics", "--out", str(o / "intrinsics"), "--count", str(b.n_intrinsics), "--seed", str(s),

@@ -103,6 +103,7 @@ def test_an_incomplete_merge_exits_nonzero(tmp_path):
     (["--count", "-1"], "Invalid value for '--count'"),
     (["--count", "1000000000"], "Invalid value for '--count'"),
     (["--count", "2", "--workers", "0"], "Invalid value for '--workers'"),
+    (["--count", "2", "--workers", "many"], "expected a number of processes from 1 to 256, or auto"),
     (["--count", "2", "--samples", "0"], "Invalid value for '--samples'"),
 ])
 def test_ranges_are_checked_where_options_are_declared(tmp_path, args, message):

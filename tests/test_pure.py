@@ -244,6 +244,17 @@ def _affinity() -> list[int]:
     return sorted(os.sched_getaffinity(0))
 
 
+def test_auto_workers_follow_the_usable_cpus_and_the_work_left(monkeypatch):
+    from blender_gen.generate import auto_workers
+
+    if not hasattr(os, "sched_getaffinity"):
+        pytest.skip("CPU affinity is a Linux feature")
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(32)))
+    assert auto_workers(10_000) == 8  # at most 8 processes, however many CPUs
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {2, 5})  # e.g. under taskset or a cpuset
+    assert [auto_workers(n) for n in (0, 1, 8, 9, 2000)] == [1, 1, 1, 2, 2]  # at least 8 samples each
+
+
 def test_worker_processes_get_disjoint_cpu_groups(monkeypatch):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
