@@ -94,7 +94,9 @@ class ModelConfig:
     # draw the car without reflections, as it learns to at the cpu budget (0.02). At 0.1 on S1 (two
     # seeds): R draws reflections (gain 0.12) and follows its input as much as the images vary (1.10 /
     # 1.05 against 1.33 / 1.28), H's normals within 0.11 deg at every probe, albedo 1.3 / 2.0 worse,
-    # reflection 1.3 / 0.5 better (docs/normals_from_shading.md, "A floor under the shared gain").
+    # reflection 1.3 / 0.5 better (docs/normals_from_shading.md, "A floor under the shared gain"); on a
+    # third S1 seed albedo 0.5 worse. At the cpu budget on four paired seeds every map is better
+    # (normals 0.6-0.8 deg), R's sensitivity 0.92-0.99; 0 stays because the comparison was trained so.
     shader_gain_min: float = 0.0
     # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
     # reflection gain fitted on the car scaling the environment too; "environment" = lin(F) as the
