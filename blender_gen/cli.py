@@ -129,15 +129,12 @@ class WorkersType(click.ParamType):
     name = "N|auto"
 
     def convert(self, value, param, ctx):
-        if isinstance(value, int) or str(value).strip().lower() == "auto":
-            return value if isinstance(value, int) else "auto"
-        try:
-            n = int(value)
-        except ValueError:
-            n = 0
-        if not 1 <= n <= 256:
-            self.fail(f"{value!r}: expected a number of processes from 1 to 256, or auto", param, ctx)
-        return n
+        text = str(value).strip().lower()
+        if text == "auto":
+            return "auto"
+        if text.isdigit() and 1 <= int(text) <= 256:
+            return int(text)
+        self.fail(f"{value!r}: expected a number of processes from 1 to 256, or auto", param, ctx)
 
 
 WORKERS_HELP = ("Blender processes rendering in parallel, each pinned to its share of the CPUs; auto: one per "

@@ -179,7 +179,7 @@ def usable_cpus() -> list[int]:
         return list(range(os.cpu_count() or 1))
 
 
-MAX_AUTO_WORKERS = 8  # past this, more Cycles threads per worker do as well as more processes
+MAX_AUTO_WORKERS = 8  # bounds memory (about 0.6 GiB per worker) and start-up; beyond it workers get more threads
 MIN_SAMPLES_PER_WORKER = 8  # a worker's start-up (Blender, scene) costs about as much as a few samples
 
 
