@@ -95,7 +95,7 @@ def decomposition(run_dir, predictions, data, out, limit, allow_missing, force, 
 @click.option("--quiet", is_flag=True)
 def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, quiet) -> None:
     """FID and KID (100 subsets of at most 1000 images; raw and x100) with TF Inception-v3 features."""
-    from .fid import compare_sets
+    from .fid import compare_sets, kid_text
 
     if (fake is None) == (run_dir is None):
         raise click.UsageError("give --fake DIR, or --run DIR with --intrinsics DIR")
@@ -116,7 +116,7 @@ def fid(real, fake, run_dir, intrinsics, limit, size, inception, out, force, qui
             fake = Path(tempfile.mkdtemp(prefix="iae_fake_")) / "rendered"
             render_dataset(run_dir, intrinsics, fake, limit=limit, progress=not quiet)
         result = compare_sets(real, fake, size_hw, limit, inception, progress=not quiet)
-    click.echo(f"FID {result['fid']:.3f}   KID {result['kid']:.5f} ± {result['kid_std']:.5f} "
+    click.echo(f"FID {result['fid']:.3f}   KID {kid_text(result)} "
                f"(x100: {100 * result['kid']:.3f})   over {result['real_images']} real / {result['fake_images']} "
                f"fake images at {result['size'][0]}x{result['size'][1]}")
     if result["fid_biased"]:

@@ -155,7 +155,20 @@ def _poly_mmd(x: torch.Tensor, y: torch.Tensor) -> float:
     return float(within - 2.0 * kxy.sum() / m**2)
 
 
-def kid_from_features(real: np.ndarray, fake: np.ndarray, subsets: int = 100, subset_size: int = 1000,
+KID_SUBSET_SIZE = 1000
+
+
+def kid_text(result: dict) -> str:
+    """KID raw with its spread over the subsets. When both sets have the same size, at most a
+    subset's, every subset holds every image and the spread is 0 by construction: say so instead
+    of printing a precision the estimate does not have."""
+    n_real, n_fake = result["real_images"], result["fake_images"]
+    if n_real == n_fake <= KID_SUBSET_SIZE:
+        return f"{result['kid']:.5f} (one subset of all {n_real}: no spread)"
+    return f"{result['kid']:.5f} ± {result['kid_std']:.5f}"
+
+
+def kid_from_features(real: np.ndarray, fake: np.ndarray, subsets: int = 100, subset_size: int = KID_SUBSET_SIZE,
                       seed: int = 0) -> tuple[float, float]:
     """KID mean and std over random subsets of equal size (the unbiased polynomial MMD)."""
     n = min(subset_size, len(real), len(fake))

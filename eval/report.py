@@ -28,7 +28,7 @@ from train.probe import probe_plot  # noqa: E402
 from train.run_folder import RunFolder  # noqa: E402
 
 from .decomposition import score_predictions, write_results  # noqa: E402
-from .fid import FID_MIN_IMAGES, InceptionFeatures, compare_sets, extract  # noqa: E402
+from .fid import FID_MIN_IMAGES, InceptionFeatures, compare_sets, extract, kid_text  # noqa: E402
 from .images import image_source  # noqa: E402
 from .paper_figures import PAPER_TABLE1, PAPER_TABLE3  # noqa: E402
 
@@ -441,7 +441,7 @@ def _table1(entries) -> tuple[list[str], list[list[str]]]:
         paper = PAPER_TABLE1.get(e["label"])
         fid = f"{f['fid']:.2f}" + (" (biased: < %d images)" % f["fid_min_images"] if f["fid_biased"] else "")
         rows.append([Path(e["run"]).name, e["label"], str(e["step"]), fid, f"{100 * f['kid']:.2f}",
-                     f"{f['kid']:.5f} ± {f['kid_std']:.5f}", f"{f['real_images']}/{f['fake_images']}",
+                     kid_text(f), f"{f['real_images']}/{f['fake_images']}",
                      f"{paper[0]:.1f} / {paper[1]:.1f}" if paper else "-"])
     return head, rows
 

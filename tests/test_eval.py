@@ -15,7 +15,8 @@ from scipy import linalg
 
 from eval.decomposition import normal_angles, scale_invariant_l1, score_predictions, score_sample
 from eval.report import build_report
-from eval.fid import InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features
+from eval.fid import (InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features,
+                      kid_text)
 
 from .conftest import ROOT, invoke_here
 from .train_helpers import tiny_fit, tiny_intrinsics, tiny_photos
@@ -71,6 +72,11 @@ def test_kid_matches_the_unbiased_mmd_formula_and_is_about_zero_for_identical_se
     different, _ = kid_from_features(big_a, big_b, subsets=5)
     same, _ = kid_from_features(big_a, big_a, subsets=5)
     assert abs(same) < 0.05 * different
+    # equal sets no larger than a subset have no spread to show; other sizes print the subsets' spread
+    _, std_small = kid_from_features(big_a[:200], big_b, subsets=5)
+    assert std_small > 0
+    assert kid_text({"kid": kid, "kid_std": std, "real_images": 60, "fake_images": 60}).endswith("no spread)")
+    assert " ± " in kid_text({"kid": kid, "kid_std": std_small, "real_images": 400, "fake_images": 200})
 
 
 def test_inception_features_and_missing_weights(monkeypatch, tmp_path):
