@@ -389,12 +389,13 @@ def test_a_run_trained_before_these_settings_loads_as_it_trained():
 
     old = Config().to_dict()
     for section, name in (("model", "renderer"), ("model", "shader_residual_on"), ("model", "shader_lighting"),
-                          ("model", "shader_gain"), ("loss", "w_shading_ren"), ("loss", "w_shading_dec"),
-                          ("run", "ema_decay")):
+                          ("model", "shader_gain"), ("model", "shader_gain_min"), ("loss", "w_shading_ren"),
+                          ("loss", "w_shading_dec"), ("run", "ema_decay")):
         del old[section][name]
     cfg = config_from_dict(old)
     assert (cfg.model.renderer, cfg.loss.w_shading_ren, cfg.loss.w_shading_dec, cfg.run.ema_decay) == ("net", 0, 0, 0)
     assert cfg.model.shader_gain == "per_image"  # the gain was fitted per image before the option
+    assert cfg.model.shader_gain_min == 0.0  # and a shared gain had no floor
     # a run that names them keeps its values
     new = config_from_dict(Config().to_dict())
     assert new.model.renderer == Config().model.renderer and new.run.ema_decay == Config().run.ema_decay
