@@ -95,8 +95,9 @@ class ModelConfig:
     # them (gain 0.11-0.12) and follows its input as much as the images vary (sensitivity 0.92-0.99
     # against 1.07-1.16); at the cpu budget on four paired seeds every map is better (normals 0.6-0.8
     # deg, albedo 0.2-0.7, reflection 0.3-1.4), KID level; on S1 (three seeds) normals level, albedo
-    # 0.5-2.0 worse, reflection 0.5-1.6 better; where the learned gain stays above it (S0 0.55, the gpu
-    # budget 0.22-0.24) it does not act (docs/normals_from_shading.md, "The floor becomes the default").
+    # 0.5-2.0 worse, reflection 0.5-1.6 better; on S0, where the learned gain stays above it (0.55), level.
+    # The gpu budget's unfloored gain (0.22-0.24) is above it too; no gpu run has had it yet
+    # (docs/normals_from_shading.md, "The floor becomes the default").
     shader_gain_min: float = 0.1
     # Where the stack has no object (zero normal), the shader shows: "gain" = gain x lin(F), the
     # reflection gain fitted on the car scaling the environment too; "environment" = lin(F) as the
