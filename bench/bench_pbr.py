@@ -30,7 +30,7 @@ def split_regions(car: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def parse_cycles(text: str, ap: argparse.ArgumentParser) -> dict:
-    """'filter_glossy=1.0,max_bounces=4' -> {'filter_glossy': 1.0, 'max_bounces': 4}"""
+    """'blur_glossy=1.0,max_bounces=4' -> {'blur_glossy': 1.0, 'max_bounces': 4}"""
     out = {}
     for item in filter(None, text.split(",")):
         key, sep, value = item.partition("=")
@@ -59,7 +59,7 @@ def main() -> None:
                          "default: the generator's, which the reference keeps")
     ap.add_argument("--cycles", nargs="+", default=[""], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="scene.cycles settings of the timed renders, one variant per argument (e.g. "
-                         "filter_glossy=1.0,glossy_bounces=2); '' is the generator's; the reference keeps it")
+                         "blur_glossy=1.0,glossy_bounces=2); '' is the generator's; the reference keeps it")
     args = ap.parse_args()
     variants = [parse_cycles(v, ap) for v in args.cycles]
     denoise = []
@@ -83,7 +83,10 @@ def main() -> None:
         for key, value in (cycles or {}).items():
             if not hasattr(r.scene.cycles, key):
                 raise SystemExit(f"--cycles: scene.cycles has no setting {key!r}")
-            setattr(r.scene.cycles, key, value)
+            try:
+                setattr(r.scene.cycles, key, value)
+            except (TypeError, ValueError) as exc:
+                raise SystemExit(f"--cycles {key}={value!r}: {exc}") from None
         r.render_layers(0)  # builds the car, the sky and the light-sampling map
         return r
 
@@ -109,7 +112,7 @@ def main() -> None:
             times.append(time.perf_counter() - t)
             sq = ((linear_to_srgb(img) - ref[i]) ** 2).mean(-1)
             errs.append(float(np.sqrt(sq.mean())))
-            parts.append({k: float(sq[m].sum() / sq.sum()) for k, m in regions[i].items()})
+            parts.append({k: float(sq[m].sum() / max(sq.sum(), 1e-20)) for k, m in regions[i].items()})
         results.append({"samples": spp, "noise_threshold": threshold, "denoise": f"{quality}:{prefilter}",
                         "pattern": pattern, "cycles": cycles,
                         "s_per_frame": float(np.mean(times)),
