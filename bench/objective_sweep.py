@@ -420,8 +420,17 @@ def grid(args) -> None:
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
     bad = 0
     for name, seed, p in procs:
-        bad += p.wait() != 0
-    print(f"{len(procs) - bad}/{len(procs)} runs finished in {args.out}")
+        failed = p.wait() != 0
+        bad += failed
+        out = Path(args.out) / f"{name}_s{seed}.jsonl"
+        rows = out.read_text().splitlines() if out.exists() else []
+        step = json.loads(rows[-1])["step"] if rows else 0
+        # a run stopped by --minutes or --stop-at ends without error short of its schedule
+        state = ("failed, see " + str(out.with_suffix(".err")) if failed else
+                 "complete" if step >= args.steps else
+                 "stopped" + ("; the same command with this --runs-dir goes on" if args.runs_dir else ""))
+        print(f"{name}_s{seed}: step {step} of {args.steps}, {state}")
+    print(f"{len(procs) - bad}/{len(procs)} runs ended without error in {args.out}")
 
 
 def main() -> None:

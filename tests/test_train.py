@@ -344,6 +344,20 @@ def test_settings_a_model_kind_ignores_or_out_of_range_are_refused(preset, setti
         load_config(preset, [setting])
 
 
+def test_a_size_the_generators_bottleneck_cannot_pad_is_refused_by_name():
+    # the paper's R downsamples by 32: at 32x64 its bottleneck is 1x2, which a reflection pad cannot pad
+    for kind in ("iae", "oracle"):
+        with pytest.raises(ConfigError, match=r"data.height/width \(32x64\) must be at least 64"):
+            load_config("paper", [f"model.kind={kind}", "data.height=32", "data.width=64"])
+    with pytest.raises(ConfigError, match=r"data.height/width \(8x16\) must be at least 16"):
+        load_config("cyclegan", ["cyclegan.n_down=3", "data.height=8", "data.width=16"])
+    # the shader R runs no generator at that size: the same size is accepted
+    assert load_config("paper", ["model.renderer=shader", "data.height=32", "data.width=64"]).data.height == 32
+    cfg = load_config("paper", ["model.kind=oracle", "data.height=64", "data.width=128"])
+    model = IntrinsicAutoencoder(cfg)
+    assert model.R(torch.zeros(1, 9, 64, 128)).shape == (1, 3, 64, 128)
+
+
 def test_the_paper_preset_trains_the_oracle_and_the_baselines():
     """`reproduce --budget gpu|paper` builds the oracle as `--config paper --set model.kind=oracle`:
     the preset's own [loss] values are dropped for a kind that never reads them, while a --set
