@@ -497,7 +497,11 @@ def main() -> None:
     pc.add_argument("--out", required=True)
     pc.add_argument("runs", nargs="+", help="LABEL=WEIGHTS.safetensors[,key=value,...] (the variant's --set values)")
     a = ap.parse_args()
-    {"pack": pack, "run": run, "grid": grid, "slim": slim, "unslim": unslim, "picture": picture}[a.cmd](a)
+    from train.config import ConfigError
+    try:
+        {"pack": pack, "run": run, "grid": grid, "slim": slim, "unslim": unslim, "picture": picture}[a.cmd](a)
+    except ConfigError as exc:  # a bad --set or size: one line, not a traceback
+        sys.exit(f"{a.cmd}: {exc}")
 
 
 if __name__ == "__main__":

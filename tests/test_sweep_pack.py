@@ -95,3 +95,30 @@ def test_a_sweep_run_stopped_and_resumed_from_its_run_folder_matches_one_run_thr
     x = torch.rand(1, 3, 32, 64) * 2 - 1
     with torch.no_grad():
         assert step == 6 and (back.decompose(x) - model.decompose(x)).abs().max() < 0.02  # float16 weights
+
+
+def test_the_sweep_grid_says_where_each_run_stopped_and_a_rerun_goes_on(tmp_path):
+    """What a GPU lease's log shows: each run's step of its schedule, and a refused setting as a
+    failed run named with its one-line reason, not a traceback."""
+    import subprocess
+
+    _synthetic_pack(tmp_path / "p.npz")
+    small = '"model.r_ngf=8", "model.h_ngf=8", "model.d_ndf=8"'
+    (tmp_path / "v.toml").write_text(f'[tiny]\nset = [{small}]\n'
+                                     f'[too_small]\nconfig = "paper"\nset = ["model.kind=oracle", {small}]\n')
+
+    def grid(*extra: str) -> str:
+        cmd = [sys.executable, str(Path(__file__).parents[1] / "bench" / "objective_sweep.py"), "grid",
+               "--data", str(tmp_path / "p.npz"), "--variants", str(tmp_path / "v.toml"), "--seeds", "0",
+               "--steps", "4", "--every", "2", "--batch", "2", "--device", "cpu", "--out", str(tmp_path / "o"),
+               "--runs-dir", str(tmp_path / "runs"), *extra]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        return proc.stdout
+
+    out = grid("--stop-at", "2")
+    assert "tiny_s0: step 2 of 4, stopped; the same command with this --runs-dir goes on" in out
+    assert "too_small_s0: step 0 of 4, failed" in out
+    assert (tmp_path / "o" / "too_small_s0.err").read_text().strip() == (
+        "run: data.height/width (32x64) must be at least 64 (the networks of model.kind = 'oracle' downsample by 32)")
+    assert "tiny_s0: step 4 of 4, complete" in grid("--only", "tiny")
