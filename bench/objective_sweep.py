@@ -425,6 +425,9 @@ def grid(args) -> None:
         out = Path(args.out) / f"{name}_s{seed}.jsonl"
         rows = out.read_text().splitlines() if out.exists() else []
         step = json.loads(rows[-1])["step"] if rows else 0
+        latest = Path(args.runs_dir or "") / f"{name}_s{seed}" / "checkpoints" / "latest.json"
+        if args.runs_dir and latest.exists():  # a run complete before this command adds no row to OUT
+            step = max(step, json.loads(latest.read_text())["step"])
         # a run stopped by --minutes or --stop-at ends without error short of its schedule
         state = ("failed, see " + str(out.with_suffix(".err")) if failed else
                  "complete" if step >= args.steps else

@@ -122,3 +122,4 @@ def test_the_sweep_grid_says_where_each_run_stopped_and_a_rerun_goes_on(tmp_path
     assert (tmp_path / "o" / "too_small_s0.err").read_text().strip() == (
         "run: data.height/width (32x64) must be at least 64 (the networks of model.kind = 'oracle' downsample by 32)")
     assert "tiny_s0: step 4 of 4, complete" in grid("--only", "tiny")
+    assert "tiny_s0: step 4 of 4, complete" in grid("--only", "tiny")  # nothing left to train
