@@ -418,16 +418,19 @@ def grid(args) -> None:
                 cmd += ["--run-dir", str(Path(args.runs_dir) / f"{name}_s{seed}")]
             cmd += [a for s in v["set"] for a in ("--set", s)]
             procs.append((name, seed, subprocess.Popen(cmd, env=env, stderr=open(Path(args.out) / f"{name}_s{seed}.err", "w"))))
+    from train.checkpoint import newest_state
+
     bad = 0
     for name, seed, p in procs:
         failed = p.wait() != 0
         bad += failed
         out = Path(args.out) / f"{name}_s{seed}.jsonl"
-        rows = out.read_text().splitlines() if out.exists() else []
-        step = json.loads(rows[-1])["step"] if rows else 0
-        latest = Path(args.runs_dir or "") / f"{name}_s{seed}" / "checkpoints" / "latest.json"
-        if args.runs_dir and latest.exists():  # a run complete before this command adds no row to OUT
-            step = max(step, json.loads(latest.read_text())["step"])
+        if args.runs_dir:  # the step a rerun goes on from (a run complete before adds no row to OUT)
+            newest = newest_state(Path(args.runs_dir) / f"{name}_s{seed}" / "checkpoints")
+            step = newest[1] if newest else 0
+        else:
+            rows = out.read_text().splitlines() if out.exists() else []
+            step = json.loads(rows[-1])["step"] if rows else 0
         # a run stopped by --minutes or --stop-at ends without error short of its schedule
         state = ("failed, see " + str(out.with_suffix(".err")) if failed else
                  "complete" if step >= args.steps else

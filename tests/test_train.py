@@ -351,8 +351,10 @@ def test_a_size_the_generators_bottleneck_cannot_pad_is_refused_by_name():
             load_config("paper", [f"model.kind={kind}", "data.height=32", "data.width=64"])
     with pytest.raises(ConfigError, match=r"data.height/width \(8x16\) must be at least 16"):
         load_config("cyclegan", ["cyclegan.n_down=3", "data.height=8", "data.width=16"])
-    # the shader R runs no generator at that size: the same size is accepted
+    # the shader R runs no generator at that size unless it has a residual: the same size is accepted
     assert load_config("paper", ["model.renderer=shader", "data.height=32", "data.width=64"]).data.height == 32
+    with pytest.raises(ConfigError, match=r"data.height/width \(32x64\) must be at least 64"):
+        load_config("paper", ["model.renderer=shader", "model.shader_residual=0.5", "data.height=32", "data.width=64"])
     cfg = load_config("paper", ["model.kind=oracle", "data.height=64", "data.width=128"])
     model = IntrinsicAutoencoder(cfg)
     assert model.R(torch.zeros(1, 9, 64, 128)).shape == (1, 3, 64, 128)

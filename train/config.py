@@ -492,8 +492,10 @@ def validate(cfg: Config) -> Config:
     if cfg.data.height % div or cfg.data.width % div:
         raise ConfigError(f"data.height/width ({cfg.data.height}x{cfg.data.width}) must be multiples of {div} "
                           f"(the networks of model.kind = {m.kind!r} downsample by that much)")
-    # the generator's residual blocks reflection-pad its bottleneck by 1, so it needs 2 pixels a side
-    if (m.renderer == "net" or m.kind in ("cyclegan", "munit")) and min(cfg.data.height, cfg.data.width) < 2 * div:
+    # a generator's residual blocks reflection-pad its bottleneck by 1, so it needs 2 pixels a side;
+    # the shader R builds one only for its residual
+    generator = m.kind in ("cyclegan", "munit") or m.renderer == "net" or m.shader_residual > 0
+    if generator and min(cfg.data.height, cfg.data.width) < 2 * div:
         raise ConfigError(f"data.height/width ({cfg.data.height}x{cfg.data.width}) must be at least {2 * div} "
                           f"(the networks of model.kind = {m.kind!r} downsample by {div})")
     if not (lo.rendering_cycle or lo.decomposition_cycle):
