@@ -570,3 +570,8 @@ def test_the_probe_plot_draws_the_moving_average_beside_both_no_image_bars_and_t
     labels = [t.get_text() for t in probe_figure(old).axes[0].get_legend().get_texts()]
     assert labels == ["H normals", "no image, constant"]
     assert probe_plot(old)[:8] == b"\x89PNG\r\n\x1a\n"
+    # after the first probe every curve is one point: drawn as a marker, as a line would draw nothing
+    first = probe_figure([row(100, True)])
+    drawn = [ln for ax in first.axes for ln in ax.get_lines() if len(ln.get_xdata()) == 1]
+    assert len(drawn) >= 8 and all(ln.get_marker() not in ("None", "", None) for ln in drawn)
+    assert all(ln.get_marker() in ("None", "", None) for ln in fig.axes[0].get_lines())  # lines once there are two
