@@ -379,7 +379,9 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--data", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Datasets folder (default: OUT/data): parts of one seed run in other --out folders can share "
                    "one copy; reproduce runs on one --data take turns generating and checking it.")
-@click.option("--steps", type=click.IntRange(1), default=None, help="Training steps per run (budget's by default).")
+@click.option("--steps", type=click.IntRange(1), default=None,
+              help="Training steps per run (budget's by default); the learning-rate decay starts at the same "
+                   "fraction of them as in the budget.")
 @click.option("--resolution", default=None,
               help="Training WIDTHxHEIGHT, as in iae-gen and export (the budget's by default, e.g. 128x64 for cpu).")
 @click.option("--intrinsics", "n_intrinsics", type=click.IntRange(2), default=None, help="Training intrinsics count.")
