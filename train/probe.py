@@ -281,23 +281,20 @@ def probe_figure(rows: list[dict], title: str = ""):
     steps = [r["step"] for r in rows]
     has_ema = any(f"{EMA_PREFIX}normal_deg" in r for r in rows)
 
-    mark = {"marker": "o", "ms": 4} if len(steps) == 1 else {}  # a line through one probe draws nothing
-
     def series(key: str, prefix: str = PROBE_PREFIX) -> list[float]:
         return [r.get(prefix + key, np.nan) for r in rows]
 
     def h_curve(ax, key: str, label: str, color: str) -> None:
         if has_ema:
-            ax.plot(steps, series(key, EMA_PREFIX), label=f"{label} (moving avg.)", color=color, **mark)
-            ax.plot(steps, series(key), label=f"{label} (raw)", color=color, alpha=0.3, lw=0.8, **mark)
+            ax.plot(steps, series(key, EMA_PREFIX), label=f"{label} (moving avg.)", color=color)
+            ax.plot(steps, series(key), label=f"{label} (raw)", color=color, alpha=0.3, lw=0.8)
         else:
-            ax.plot(steps, series(key), label=label, color=color, **mark)
+            ax.plot(steps, series(key), label=label, color=color)
 
     def bars(ax, key: str, label: str, color: str) -> None:
-        ax.plot(steps, series(f"const_{key}"), "--", color=color, alpha=0.6, label=f"{label}, constant", **mark)
+        ax.plot(steps, series(f"const_{key}"), "--", color=color, alpha=0.6, label=f"{label}, constant")
         if any(np.isfinite(series(f"prior_{key}"))):
-            ax.plot(steps, series(f"prior_{key}"), "-.", color=color, alpha=0.6, label=f"{label}, per-pixel prior",
-                    **mark)
+            ax.plot(steps, series(f"prior_{key}"), "-.", color=color, alpha=0.6, label=f"{label}, per-pixel prior")
 
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.4))
     h_curve(axes[0], "normal_deg", "H normals", "C0")
@@ -306,22 +303,25 @@ def probe_figure(rows: list[dict], title: str = ""):
     for k, (key, name) in enumerate((("albedo_l1", "albedo"), ("reflection_l1", "reflection"))):
         h_curve(axes[1], key, name, f"C{k + 1}")
         bars(axes[1], key, name, f"C{k + 1}")
-    axes[1].plot(steps, series("render_l1"), label="R image", color="C3", **mark)
+    axes[1].plot(steps, series("render_l1"), label="R image", color="C3")
     axes[1].set_ylabel("L1 (0-255 sRGB, object pixels)")
     pre = EMA_PREFIX if has_ema else PROBE_PREFIX
-    axes[2].plot(steps, series("normal_hf_ratio", pre), label="normals", color="C0", **mark)
-    axes[2].plot(steps, series("albedo_hf_ratio", pre), label="albedo", color="C1", **mark)
+    axes[2].plot(steps, series("normal_hf_ratio", pre), label="normals", color="C0")
+    axes[2].plot(steps, series("albedo_hf_ratio", pre), label="albedo", color="C1")
     axes[2].axhline(1.0, color="0.4", ls="--", lw=0.8, label="the truth's")
     axes[2].set_ylabel("high-frequency energy / truth's")
     for k, axis in enumerate("xyz"):
-        axes[3].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}", **mark)
-    axes[3].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k", **mark)
-    axes[3].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k", **mark)
-    axes[3].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3", **mark)
+        axes[3].plot(steps, series(f"normal_corr_{axis}"), label=f"normal corr {axis}", color=f"C{k + 4}")
+    axes[3].plot(steps, series("r_sensitivity"), label="R input sensitivity", color="k")
+    axes[3].plot(steps, series("r_colour_corr"), ":", label="R colour corr.", color="k")
+    axes[3].plot(steps, series("h_colour_corr"), ":", label="H albedo colour corr.", color="C3")
     if any(np.isfinite(series("r_gain"))):
-        axes[3].plot(steps, series("r_gain"), "--", label="R reflection gain", color="k", alpha=0.6, **mark)
+        axes[3].plot(steps, series("r_gain"), "--", label="R reflection gain", color="k", alpha=0.6)
     top = np.nanmax([1.2, *series("r_sensitivity")])  # a renderer above 1 stays in view
     axes[3].set_ylim(-0.2, top + 0.1)
+    for ln in (ln for ax in axes for ln in ax.get_lines() if len(ln.get_xdata()) == 1):
+        ln.set_marker("o")  # a line through one probe draws nothing (before the legends, which copy it)
+        ln.set_markersize(4)
     whats = ("H: normals (lower is better)", "H: albedo, reflection; R", "H: speckle", "agreement")
     for ax, what in zip(axes, whats):
         ax.set_xlabel("step")
