@@ -153,7 +153,8 @@ def measure(frames: Iterable[tuple[str, np.ndarray | None, Box | None]], total: 
         else:
             boxed.append((name, frame, car_box(frame), truth))
     if not boxed:
-        raise ValueError(f"no readable photo among {total} to estimate the framing from")
+        shown = ", ".join(skipped[:3]) + (f" and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+        raise ValueError(f"no readable photo among {total} to estimate the framing from (unreadable: {shown})")
     coverages = [box_coverage(box, frame.shape) for _, frame, box, _ in boxed]
     return Framing(tuple(coverages), tuple(skipped), *coverage_range(coverages)), boxed
 

@@ -90,7 +90,7 @@ def test_the_estimate_finds_a_car_shaped_region_and_skips_unreadable_photos(tmp_
     assert flat.shape == (64, 128, 3) and photo_coverage(flat) == 0.0  # nothing to find: no error
     assert coverage_range([0.5] * 5) == (0.45, 0.55)  # at least 0.1 wide
     assert coverage_range([0.01, 0.02, 0.99, 0.99]) == (0.05, 0.9)  # the car stays whole in the frame
-    with pytest.raises(ValueError, match="no readable photo"):
+    with pytest.raises(ValueError, match="no readable photo among 1 .*broken.jpg"):
         estimate_framing([folder / "broken.jpg"], progress=False)
     # the command: figures, the iae-gen options, the boxes drawn for a person to check, the JSON
     from click.testing import CliRunner
