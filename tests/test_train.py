@@ -588,3 +588,27 @@ def test_training_grids_are_titled_and_reach_tensorboard(data, tmp_path):
     events = EventAccumulator(str(next(run.rglob("events.out.tfevents.*")).parent))
     events.Reload()
     assert "samples" in events.Tags()["images"]
+
+
+def test_a_run_records_its_compute_and_a_resume_on_other_compute_says_so(data, tmp_path, capsys):
+    """The order of float sums follows the CPU thread count, so a run records it: the same seed and
+    data give the same bytes only on the same compute, and a resume on other compute says so."""
+    intr, photos = data
+    run = tmp_path / "run"
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        tiny_fit(run, intr, photos, 2)
+        opts = json.loads((run / "training_options.json").read_text())
+        assert opts["compute"] == {"torch": torch.__version__, "device": "cpu", "processes": 1, "threads": 1}
+        assert "torch " + torch.__version__ + " on cpu, 1 CPU thread(s)" in (run / "MODEL_CARD.md").read_text()
+        fit(run, max_steps=3, progress=False)  # the same compute: no note
+        assert "other compute" not in capsys.readouterr().err
+        torch.set_num_threads(2)
+        fit(run, max_steps=4, progress=False)
+        err = capsys.readouterr().err
+        assert "resumes with other compute than it started with (threads 1 -> 2)" in err and str(run) in err
+        # what the run started with stays recorded
+        assert json.loads((run / "training_options.json").read_text())["compute"]["threads"] == 1
+    finally:
+        torch.set_num_threads(before)

@@ -463,6 +463,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     for why in skipped if dd.main else []:
         tqdm.write(f"skipped an unreadable checkpoint: {why}", file=sys.stderr)
     start = int(state["step"]) if state else 0
+    if dd.main:
+        note_compute(run, opts, device, dd.world, fresh=state is None)
     if dd.world > 1:  # identical weights everywhere (a fresh run initialises per process)
         for p in model.state_dict().values():
             dist.broadcast(p, 0)
@@ -570,6 +572,32 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     seconds = time.perf_counter() - t_start
     return {"step": step, "steps_run": step - start, "seconds": seconds, "last": last_logs,
             "resumed_from": str(resumed_from) if resumed_from else None}
+
+
+def compute_identity(device: str, world: int) -> dict:
+    """What decides a run's arithmetic besides its seed and data: the order of float sums depends
+    on the torch build, the device and the CPU thread count, so the same seed and data give the
+    same weights byte for byte only with the same of these."""
+    return {"torch": torch.__version__, "device": device.split(":")[0], "processes": world,
+            "threads": torch.get_num_threads() if not device.startswith("cuda") else None}
+
+
+def note_compute(run: RunFolder, opts: dict, device: str, world: int, fresh: bool) -> None:
+    """Record the compute identity when a run starts; on a resume with another one, say so (the
+    continuation is valid, but not the bytes one uninterrupted run would have made)."""
+    now = compute_identity(device, world)
+    was = opts.get("compute")
+    if fresh:
+        if was != now:
+            opts["compute"] = now
+            atomic_write_json(run.options_path, opts)
+        return
+    if was is None:  # a run folder from before the record: what it started with is unknown
+        return
+    differ = [f"{k} {was.get(k)} -> {now[k]}" for k in now if was.get(k) != now[k]]
+    if differ:
+        tqdm.write(f"note: {run.root} resumes with other compute than it started with ({', '.join(differ)}): "
+                   "it trains on, but not to the bytes of one uninterrupted run", file=sys.stderr)
 
 
 def make_ema(model, decay: float):

@@ -55,6 +55,14 @@ def _probe(rows: list[dict]) -> list[str]:
             f"{f('probe/prior_reflection_l1')} |"]
 
 
+def _compute(c: dict | None) -> str:
+    if not c:
+        return "- Compute: not recorded (a run folder from before the record)."
+    threads = f", {c['threads']} CPU thread(s)" if c.get("threads") else ""
+    return (f"- Compute: torch {c['torch']} on {c['device']}{threads}, {c['processes']} process(es); the same seed "
+            "and data give the same weights byte for byte only with the same compute.")
+
+
 def write_model_card(run: RunFolder, cfg: Config, opts: dict, model, step: int) -> Path:
     """Write RUN/MODEL_CARD.md for the weights of `step`."""
     m = cfg.model
@@ -72,6 +80,7 @@ def write_model_card(run: RunFolder, cfg: Config, opts: dict, model, step: int) 
         f"batch {cfg.data.batch_size}, seed {cfg.run.seed}; moving average of the weights: "
         + (f"decay {cfg.run.ema_decay} (used by inference)" if cfg.run.ema_decay else "off") + ".",
         f"- Started from: `{init['run']}` step {init['step']}" if init else "- Started from: random initialisation.",
+        _compute(opts.get("compute")),
         "", "| network | class | parameters |", "|---|---|---|", nets.rstrip("\n"), "",
         "## Data", "",
         "| role | path | kind | samples | resolution | content digest |", "|---|---|---|---|---|---|",
