@@ -59,11 +59,13 @@ for kind in intr pbr; do
 done
 
 echo "== 3 one writer per run folder"
-iae-train fit --config cpu-small --intrinsics "$W/intr" --real "$W/pbr" --run-dir "$W/two" --max-steps 40 --quiet "${TINY[@]}" >/dev/null 2>&1 &
-sleep 8
+# the first fit runs long enough to still hold the lock; it is taken before the options are written
+iae-train fit --config cpu-small --intrinsics "$W/intr" --real "$W/pbr" --run-dir "$W/two" --max-steps 100000 --quiet "${TINY[@]}" >/dev/null 2>&1 &
+first=$!
+for _ in $(seq 120); do [ -f "$W/two/training_options.json" ] && break; sleep 0.5; done
 case_ "3 a second fit in the same run folder is refused" 1 "in use|another|lock" -- \
   iae-train fit --run-dir "$W/two" --quiet
-wait
+kill -TERM $first; wait $first
 case_ "3 --runs full,,full refused" "1|2" "twice|empty|Invalid value for --runs" -- iae-eval reproduce --budget smoke --runs full,,full --out "$W/rr" --dry-run
 
 echo "== 4 export never overwrites"
