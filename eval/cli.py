@@ -279,7 +279,7 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
 
     from blender_gen.dataset import atomic_write_json
 
-    from train.data import image_files
+    from train.data import image_files, unread_photos_note, unread_photos_summary
 
     from .framing import box_coverage, contact_sheet, coverage_range, measure, pbr_frames, photo_frames, spread
 
@@ -293,7 +293,11 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
         else:
             files = image_files(images)
             if not files:
-                raise ValueError(f"{images}: no .jpg/.png photos (nor a PBR set's dataset.json)")
+                unread = unread_photos_summary(images)
+                raise ValueError(f"{images}: no .jpg/.png/.webp/.bmp/.tif photos (nor a PBR set's dataset.json)"
+                                 + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
+            if note := unread_photos_note(images, "IMAGES"):
+                click.echo(note, err=True)
             found, boxed = measure(((n, f, None) for n, f in photo_frames(files, limit, not quiet)), len(files))
         result: dict = {"images": str(images), "coverages": [round(c, 4) for c in found.coverages],
                         "skipped": list(found.skipped),
@@ -494,8 +498,12 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
                 framing if isinstance(framing, tuple) else None)
     click.echo(f"reproduce, budget {budget!r}: {b.note}")
     if photos is not None:
+        from train.data import unread_photos_note
+
         with one_line_errors():
             files, held = plan.photo_split()  # --gallery photos held out, at most a quarter of them
+        if note := unread_photos_note(photos, "--real"):
+            click.echo(note, err=True)
     real_text = f"your photos in {photos} ({len(held)} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
                f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))

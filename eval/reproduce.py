@@ -122,11 +122,13 @@ class Plan:
 
     def photo_split(self) -> tuple[list[Path], set[int]]:
         """The user's photos (sorted by path) and the indices held out for the gallery: every k-th."""
-        from train.data import image_files
+        from train.data import image_files, unread_photos_summary
 
         files = image_files(self.photos)
         if len(files) < 4:
-            raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed (.jpg/.png)")
+            unread = unread_photos_summary(self.photos)
+            raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed (.jpg/.png/.webp/"
+                             ".bmp/.tif)" + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
         k = min(self.gallery, len(files) // 4)
         held = {round(j * (len(files) - 1) / max(1, k - 1)) for j in range(k)} if k > 1 else {len(files) // 2}
         return files, held

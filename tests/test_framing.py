@@ -108,7 +108,10 @@ def test_the_estimate_finds_a_car_shaped_region_and_skips_unreadable_photos(tmp_
     assert json.loads((tmp_path / "framing.json").read_text())["range"] == [found.low, found.high]
     (tmp_path / "empty").mkdir()
     empty = CliRunner().invoke(main, ["framing", str(tmp_path / "empty")])
-    assert empty.exit_code == 1 and "no .jpg/.png photos" in empty.output
+    assert empty.exit_code == 1 and "no .jpg/.png/.webp/.bmp/.tif photos" in empty.output
+    (tmp_path / "empty" / "IMG_0001.HEIC").write_bytes(b"\0" * 64)  # a phone's default format
+    heic = CliRunner().invoke(main, ["framing", str(tmp_path / "empty")])
+    assert heic.exit_code == 1 and "1 photo(s) in formats not read here (.heic; first IMG_0001.HEIC)" in heic.output
 
 
 @pytest.mark.blender

@@ -524,6 +524,34 @@ def test_photos_of_every_pillow_mode_load_at_their_own_scale(tmp_path, mode):
     assert np.allclose(got, want, atol=0.02), (mode, float(got.mean()))
 
 
+def test_webp_bmp_and_tiff_photos_are_read_and_heic_ones_named(tmp_path):
+    from PIL import Image
+
+    from blender_gen.dataset import DatasetError
+    from train.data import RealImages, image_files, read_photo, unread_photos_note
+
+    grey = Image.new("RGB", (8, 6), (128, 128, 128))
+    for name in ("a.webp", "b.BMP", "c.tif", "sub/d.jpg"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        grey.save(tmp_path / name, **({"lossless": True} if name.endswith("webp") else {}))
+    (tmp_path / "notes.txt").write_text("not a photo")
+    assert unread_photos_note(tmp_path, "--real") is None
+    (tmp_path / "e.HEIC").write_bytes(b"\0" * 64)
+    (tmp_path / "f.dng").write_bytes(b"\0" * 64)
+    files = image_files(tmp_path)
+    assert [f.relative_to(tmp_path).as_posix() for f in files] == ["a.webp", "b.BMP", "c.tif", "sub/d.jpg"]
+    for f in files:
+        assert np.allclose(read_photo(f), 0.502, atol=0.02), f
+    note = unread_photos_note(tmp_path, "--real")
+    assert note == (f"note: --real {tmp_path}: 2 photo(s) in formats not read here (.dng, .heic; first e.HEIC) are "
+                    "left out; convert them to JPG or PNG to use them")
+    only_heic = tmp_path / "phone"
+    only_heic.mkdir()
+    (only_heic / "IMG_0001.heic").write_bytes(b"\0" * 64)
+    with pytest.raises(DatasetError, match=r"no images found .*1 photo\(s\) in formats not read here \(\.heic"):
+        RealImages(only_heic, 4, 8)
+
+
 def test_an_oversized_photo_is_a_one_line_error(tmp_path, monkeypatch):
     from PIL import Image
 

@@ -251,19 +251,23 @@ def test_render_and_decompose_commands(data, tmp_path):
     shots = tmp_path / "shots"
     shutil.copytree(photos, shots / "street")
     Image.new("RGB", (300, 300), (120, 90, 60)).save(shots / "square.jpg")
+    Image.new("RGB", (200, 100), (60, 90, 120)).save(shots / "square.webp")  # the same name, another photo
     (shots / "broken.jpg").write_bytes(b"\xff\xd8 not a jpeg")
+    (shots / "IMG_0001.HEIC").write_bytes(b"\0" * 64)  # not read here: named, not silently dropped
     res = _run("decompose", "--run", str(run), "--images", str(shots), "--out", str(tmp_path / "p"), "--quiet",
                check=False)
     assert res.returncode == 1 and "1 photo(s) could not be read and were skipped (broken.jpg)" in res.stderr
     assert "Traceback" not in res.stderr
+    assert "1 photo(s) in formats not read here (.heic; first IMG_0001.HEIC) are left out" in res.stderr
     gallery = tmp_path / "p" / "photos"
-    assert Image.open(gallery / "square_normal.png").size == (300, 300)  # no crop to 2:1
+    assert Image.open(gallery / "square_jpg_normal.png").size == (300, 300)  # no crop to 2:1
+    assert Image.open(gallery / "square_webp_normal.png").size == (200, 100)  # neither overwrites the other
     assert Image.open(gallery / "street__photo_1_albedo.png").size == (90, 60)
-    panel = Image.open(gallery / "square.png")
+    panel = Image.open(gallery / "square_jpg.png")
     assert panel.size == (5 * 256, 18 + 256)  # photo, normal, albedo, reflection, R(H(photo)); a title row
     assert "street/photo_0.jpg" in (gallery / "index.html").read_text()
     info = json.loads((tmp_path / "p" / "dataset.json").read_text())
-    assert info["complete"] and info["count"] == 5 and info["skipped"][0]["file"].endswith("broken.jpg")
+    assert info["complete"] and info["count"] == 6 and info["skipped"][0]["file"].endswith("broken.jpg")
     bad = _run("decompose", "--run", str(run), "--images", str(intr), "--out", str(tmp_path / "x"), check=False)
     assert bad.returncode and "dataset of kind 'intrinsics', expected pbr" in bad.stderr
     bad = _run("render", "--run", str(tmp_path / "nothing"), "--intrinsics", str(intr), "--out", str(tmp_path / "y"),

@@ -26,10 +26,19 @@ def main() -> None:
     """Intrinsic Autoencoder training and inference."""
 
 
+def _note_unread_photos(folder, option: str) -> None:
+    """Say on stderr which photos of a folder are left out for their format (HEIC, raw, ...)."""
+    from .data import unread_photos_note
+
+    if folder is not None and (note := unread_photos_note(Path(folder), option)):
+        click.echo(note, err=True)
+
+
 @main.command()
 @click.option("--config", "config", default=None, help="Preset (paper, cpu-small, cyclegan, munit) or a TOML file.")
 @click.option("--intrinsics", type=click.Path(), default=None, help="Intrinsics dataset (M_s).")
-@click.option("--real", type=click.Path(), default=None, help="PBR dataset or folder of JPG/PNG photos (I_r).")
+@click.option("--real", type=click.Path(), default=None,
+              help="PBR dataset or folder of photos: JPG, PNG, WebP, BMP or TIFF (I_r).")
 @click.option("--run-dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Run folder; an existing one is resumed where it stopped.")
 @click.option("--objective", type=click.Choice(["default", "paper"]), default=None,
@@ -61,6 +70,7 @@ def fit(config, intrinsics, real, run_dir, objective, overrides, max_steps, prob
         raise click.UsageError("--set needs --config or --init-from (a resumed run keeps its saved config)")
     if objective and not config:
         raise click.UsageError("--objective needs --config (the preset whose networks it goes on)")
+    _note_unread_photos(real, "--real")
     try:
         with one_line_errors(EXPECTED + (NonFiniteLoss,)):
             if config:
@@ -162,6 +172,7 @@ def decompose(run_dir, images, out, limit, device, quiet) -> None:
     resolution for a PBR set, which `iae-eval decomposition` scores)."""
     from .inference import decompose_images
 
+    _note_unread_photos(images, "--images")
     with one_line_errors():
         path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet)
     gallery = path / "photos" / "index.html"

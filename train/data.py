@@ -19,7 +19,11 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from blender_gen.conversions import to_network
 from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, open_dataset
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff")
+# photo formats Pillow does not read here (a phone's HEIC, cameras' raw files, AVIF, JPEG XL): a
+# folder of them is named with what to do instead of seeming empty or smaller than it is
+UNREAD_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".jxl", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf",
+                         ".orf", ".rw2")
 
 
 def set_identity(root: Path) -> dict:
@@ -58,8 +62,31 @@ def check_ready(root: Path, option: str) -> None:
 
 
 def image_files(root: Path) -> list[Path]:
-    """The JPG/PNG photos under a folder (recursively), in a fixed order."""
+    """The photos (JPG, PNG, WebP, BMP, TIFF) under a folder (recursively), in a fixed order."""
     return sorted(p for p in Path(root).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def unread_photos(root: Path) -> list[Path]:
+    """The photos under a folder in formats that are not read here (HEIC, raw, ...), sorted."""
+    root = Path(root)
+    if not root.is_dir() or (root / "dataset.json").exists():
+        return []
+    return sorted(p for p in root.rglob("*") if p.suffix.lower() in UNREAD_PHOTO_SUFFIXES)
+
+
+def unread_photos_summary(root: Path) -> str | None:
+    """'N photo(s) in formats not read here (.heic; first NAME)' for a folder's unread photos, or None."""
+    unread = unread_photos(root)
+    if not unread:
+        return None
+    kinds = ", ".join(sorted({p.suffix.lower() for p in unread}))
+    return f"{len(unread)} photo(s) in formats not read here ({kinds}; first {unread[0].name})"
+
+
+def unread_photos_note(root: Path, option: str) -> str | None:
+    """One line naming the photos under `root` that are left out for their format, or None."""
+    summary = unread_photos_summary(root)
+    return f"note: {option} {root}: {summary} are left out; convert them to JPG or PNG to use them" if summary else None
 
 
 def resize(t: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -173,7 +200,7 @@ def read_photo(path: Path) -> np.ndarray:
 
 
 class RealImages(Dataset):
-    """I_r from a PBR dataset (its `rgb` layer) or a folder of JPG/PNG photos -> (3, H, W).
+    """I_r from a PBR dataset (its `rgb` layer) or a folder of photos (`image_files`) -> (3, H, W).
 
     Both are scaled to cover the training size and centre-cropped (`cover_crop`).
     """
@@ -192,7 +219,9 @@ class RealImages(Dataset):
         else:
             raise DatasetError(f"{root}: no such folder of images or PBR dataset")
         if n == 0:
-            raise DatasetError(f"{root}: no images found (expected a PBR dataset or .jpg/.png files)")
+            unread = unread_photos_summary(root)
+            raise DatasetError(f"{root}: no images found (expected a PBR dataset or .jpg/.png/.webp/.bmp/.tif photos)"
+                               + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
 
     def __len__(self) -> int:
         return len(self.ds) if self.ds is not None else len(self.files)

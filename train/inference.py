@@ -157,11 +157,12 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
     and the scorer read); photos/ holds the maps at the photo's size, named after it, and a
     labelled panel per photo. An unreadable photo is skipped and named; the others go on."""
     from .data import cover_crop, resize
-    from .photos import network_size, output_size, photo_name, write_gallery, write_photo_outputs
+    from .photos import network_size, output_size, photo_names, write_gallery, write_photo_outputs
 
     gallery = out / "photos"
     gallery.mkdir()
     done, skipped = [], []
+    names = photo_names(reals.files[:n], Path(images))
     for i in tqdm(range(n), desc="decompose", unit="photo", disable=not progress):
         path = reals.files[i]
         try:
@@ -174,7 +175,7 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
         img = resize(photo, hn, wn)[None].to(device)
         maps = model.decompose(img).float()
         rerender = model.reconstruct(img, maps) if hasattr(model, "reconstruct") else model.render(maps)
-        name = photo_name(path, Path(images))
+        name = names[i]
         full = resize(maps[0].cpu(), *output_size(*photo.shape[-2:]))  # once, for the pictures and the crop
         write_photo_outputs(gallery, name, photo, full, rerender[0].cpu())
         crop = cover_crop(full, cfg.data.height, cfg.data.width)

@@ -46,6 +46,29 @@ def photo_name(path: Path, root: Path) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", "__".join(rel.with_suffix("").parts))
 
 
+OUTPUT_KEYS = ("normal", "albedo", "reflection", "render")
+
+
+def photo_names(paths: list[Path], root: Path) -> list[str]:
+    """`photo_name` of each photo, made unique across the list, so that no photo's files overwrite
+    another's: car.jpg beside car.png, or a photo named like another's output (car_normal.jpg beside
+    car.jpg), keep their suffix (car_jpg, car_png); a name still taken gets the photo's position."""
+    from collections import Counter
+
+    base = [photo_name(p, root) for p in paths]
+    count = Counter(base)
+    outputs = {f"{b}_{k}" for b in base for k in OUTPUT_KEYS}
+    names = [f"{b}_{Path(p).suffix.lstrip('.').lower()}" if count[b] > 1 or b in outputs else b
+             for b, p in zip(base, paths)]
+    outputs = {f"{n}_{k}" for n in names for k in OUTPUT_KEYS}
+    taken: set[str] = set()
+    for i, n in enumerate(names):
+        if n in taken or n in outputs:  # car.JPG beside car.jpg
+            names[i] = n = f"{n}_{i}"
+        taken.add(n)
+    return names
+
+
 def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, full: torch.Tensor,
                         rerender: torch.Tensor) -> Path:
     """NAME_normal/_albedo/_reflection/_render.png and the labelled panel NAME.png. `photo` (3, H, W),
@@ -54,7 +77,7 @@ def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, full: torc
     # interpolated normals are shorter than unit length: the picture shows them normalised
     tiles = {"normal": F.normalize(full[0:3].float(), dim=0), "albedo": full[3:6].float(),
              "reflection": full[6:9].float(), "render": resize(rerender.float(), h, w)}
-    for key, t in tiles.items():
+    for key, t in tiles.items():  # OUTPUT_KEYS
         save_png(folder / f"{name}_{key}.png", to_display(t))
     ph = PANEL_HEIGHT
     pw = max(1, round(w * ph / h))
