@@ -279,7 +279,7 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
 
     from blender_gen.dataset import atomic_write_json
 
-    from train.data import image_files, unread_photos_note, unread_photos_summary
+    from train.data import PHOTO_KINDS, image_files, unread_photos_hint, unread_photos_note
 
     from .framing import box_coverage, contact_sheet, coverage_range, measure, pbr_frames, photo_frames, spread
 
@@ -293,9 +293,8 @@ def framing(images, sheet, out, limit, force, quiet) -> None:
         else:
             files = image_files(images)
             if not files:
-                unread = unread_photos_summary(images)
-                raise ValueError(f"{images}: no .jpg/.png/.webp/.bmp/.tif photos (nor a PBR set's dataset.json)"
-                                 + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
+                raise ValueError(f"{images}: no {PHOTO_KINDS} photos (nor a PBR set's dataset.json)"
+                                 + unread_photos_hint(images))
             if note := unread_photos_note(images, "IMAGES"):
                 click.echo(note, err=True)
             found, boxed = measure(((n, f, None) for n, f in photo_frames(files, limit, not quiet)), len(files))

@@ -122,13 +122,12 @@ class Plan:
 
     def photo_split(self) -> tuple[list[Path], set[int]]:
         """The user's photos (sorted by path) and the indices held out for the gallery: every k-th."""
-        from train.data import image_files, unread_photos_summary
+        from train.data import PHOTO_KINDS, image_files, unread_photos_hint
 
         files = image_files(self.photos)
         if len(files) < 4:
-            unread = unread_photos_summary(self.photos)
-            raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed (.jpg/.png/.webp/"
-                             ".bmp/.tif)" + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
+            raise ValueError(f"--real {self.photos}: {len(files)} photo(s); at least 4 are needed ({PHOTO_KINDS})"
+                             + unread_photos_hint(self.photos))
         k = min(self.gallery, len(files) // 4)
         held = {round(j * (len(files) - 1) / max(1, k - 1)) for j in range(k)} if k > 1 else {len(files) // 2}
         return files, held

@@ -20,6 +20,7 @@ from blender_gen.conversions import to_network
 from blender_gen.dataset import INTRINSIC_LAYERS, DatasetError, open_dataset
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff")
+PHOTO_KINDS = ".jpg/.png/.webp/.bmp/.tif"  # IMAGE_SUFFIXES as messages name them
 # photo formats Pillow does not read here (a phone's HEIC, cameras' raw files, AVIF, JPEG XL): a
 # folder of them is named with what to do instead of seeming empty or smaller than it is
 UNREAD_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".jxl", ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf",
@@ -81,6 +82,12 @@ def unread_photos_summary(root: Path) -> str | None:
         return None
     kinds = ", ".join(sorted({p.suffix.lower() for p in unread}))
     return f"{len(unread)} photo(s) in formats not read here ({kinds}; first {unread[0].name})"
+
+
+def unread_photos_hint(root: Path) -> str:
+    """What a 'no photos' error adds about a folder's unread photos: '; N photo(s) ...: convert them', or ''."""
+    summary = unread_photos_summary(root)
+    return f"; {summary}: convert them to JPG or PNG" if summary else ""
 
 
 def unread_photos_note(root: Path, option: str) -> str | None:
@@ -219,9 +226,8 @@ class RealImages(Dataset):
         else:
             raise DatasetError(f"{root}: no such folder of images or PBR dataset")
         if n == 0:
-            unread = unread_photos_summary(root)
-            raise DatasetError(f"{root}: no images found (expected a PBR dataset or .jpg/.png/.webp/.bmp/.tif photos)"
-                               + (f"; {unread}: convert them to JPG or PNG" if unread else ""))
+            raise DatasetError(f"{root}: no images found (expected a PBR dataset or {PHOTO_KINDS} photos)"
+                               + unread_photos_hint(root))
 
     def __len__(self) -> int:
         return len(self.ds) if self.ds is not None else len(self.files)
