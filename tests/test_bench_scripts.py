@@ -74,3 +74,20 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
     bad = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"x={tmp_path / 'none'}"],
                          cwd=ROOT, capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert bad.returncode != 0 and "expected LABEL=RUN_DIR" in bad.stderr
+
+
+def test_lattice_peaks_find_a_checkerboard_and_not_a_smooth_map():
+    """bench/lattice_peaks.py's figure: about 1 on a map without a lattice pattern, far above with one."""
+    import torch
+
+    sys.path[:0] = [str(ROOT / "bench")]
+    try:
+        from lattice_peaks import lattice_peak_ratio
+    finally:
+        del sys.path[0]
+    torch.manual_seed(0)
+    smooth = torch.nn.functional.avg_pool2d(torch.randn(8, 3, 68, 132), 5, stride=1)  # (8, 3, 64, 128)
+    yy, xx = torch.meshgrid(torch.arange(64), torch.arange(128), indexing="ij")
+    lattice = ((yy % 4 == 0) & (xx % 4 == 0)).float() * smooth.std()  # a dot every 4 pixels
+    assert 0.5 < lattice_peak_ratio(smooth, 4) < 2
+    assert lattice_peak_ratio(smooth + lattice, 4) > 10

@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from train.config import ConfigError, load_config, set_value
 from train.data import RealImages, StepSampler, flip_stack
@@ -53,6 +54,31 @@ def test_network_shapes(h, w):
     assert model.R.net.model[1].in_channels == 6 + 3  # the selected maps and the shaded image (renderer "shader")
     paper_r = IntrinsicAutoencoder(tiny_cfg(data__height=h, data__width=w, model__inputs="NA", model__renderer="net"))
     assert paper_r.R.model[1].in_channels == 6
+
+
+def test_resize_upsampling_draws_no_checkerboard_and_older_runs_keep_transposed_layers():
+    """On a constant input a stride-2 transposed 3x3 convolution gives even and odd pixels different
+    numbers of kernel taps (a 2x2 checkerboard); nearest upsampling + a 3x3 convolution gives one value."""
+    from train.config import Config, config_from_dict, validate
+    from train.networks import init_weights, upsample_layer
+
+    torch.manual_seed(0)
+    flat = torch.ones(1, 8, 8, 8)
+    phases = {}
+    for kind in ("transposed", "resize"):
+        layer = init_weights(nn.Sequential(*upsample_layer(8, 4, kind)))
+        out = layer(flat)[0, :, 2:-2, 2:-2]  # away from the borders' padding
+        assert out.shape[-2:] == (12, 12)
+        phases[kind] = torch.stack([out[:, i::2, j::2] for i in (0, 1) for j in (0, 1)])  # the four 2x2 phases
+    assert phases["resize"].std(dim=(0, 2, 3)).max() < 1e-6
+    assert phases["transposed"].mean(dim=(2, 3)).std(dim=0).min() > 1e-3
+    x3 = torch.randn(2, 3, 32, 64)
+    assert Decomposer(8, 2, 2, upsample="resize")(x3).shape == (2, 9, 32, 64)
+    old = Config().to_dict()
+    del old["model"]["h_upsample"]
+    assert config_from_dict(old).model.h_upsample == "transposed"  # what every run before the option had
+    with pytest.raises(ConfigError, match="model.h_upsample"):
+        validate(tiny_cfg(model__h_upsample="bilinear"))
 
 
 def test_losses_against_hand_computed_values():

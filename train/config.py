@@ -46,6 +46,13 @@ class ModelConfig:
     h_downsample: int = 2
     h_blocks: int = 5
     normal_output: str = "tanh"  # "tanh" + the normal-length loss (the paper), or "normalize"
+    # How H's decoders double the resolution: "transposed" (the paper's pix2pixHD/CycleGAN layers) or
+    # "resize" (nearest-neighbour upsampling + 3x3 convolution, free of the transposed layers'
+    # checkerboard). Measured at the cpu budget (seeds 21, 22): resize takes the lattice peaks of H's
+    # maps from 2.1-3.2 to 1.0-1.4 (truth 1.0-1.1) and its speckle from 0.46 to 0.29, normals level
+    # (0.5 / 0.2 deg better), albedo 1.2 / 1.9 and reflection 1.8 / 1.6 worse: not the default
+    # (docs/normals_from_shading.md, "H's upsampling").
+    h_upsample: str = "transposed"
     # Not in the paper: "net" = R is the pix2pixHD generator alone (the paper); "shader" = R is a
     # deferred shader, lin(A) x SH(N; learned lighting) + gain x lin(F) (train.shading), plus the
     # same generator as a residual of amplitude shader_residual (network units; 0 = shader only) on
@@ -447,6 +454,7 @@ def validate(cfg: Config) -> Config:
     _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
+    _choice("model.h_upsample", m.h_upsample, ("transposed", "resize"))
     _choice("model.norm", m.norm, ("instance", "batch"))
     _choice("model.renderer", m.renderer, ("net", "shader"))
     _choice("model.shader_residual_on", m.shader_residual_on, ("background", "everywhere"))
@@ -592,7 +600,7 @@ def objective_differences(a: Config, b: Config) -> list[str]:
 LEGACY_VALUES = {"model.renderer": "net", "model.shader_residual_on": "everywhere", "model.shader_lighting": "global",
                  "model.shader_background": "gain", "loss.w_shading_ren": 0.0, "loss.w_shading_dec": 0.0,
                  "run.ema_decay": 0.0, "model.bank_level": "fit",
-                 "model.shader_gain": "per_image", "model.shader_gain_min": 0.0}
+                 "model.shader_gain": "per_image", "model.shader_gain_min": 0.0, "model.h_upsample": "transposed"}
 
 
 def differing_sections(a: Config, b: Config) -> list[str]:

@@ -72,7 +72,7 @@ class IntrinsicAutoencoder(nn.Module):
         else:
             self.R = make_renderer_net(3 * len(self.inputs), m.r_ngf, m.r_downsample, m.r_blocks,
                                        m.r_local_enhancers, m.norm)
-        self.H = Decomposer(m.h_ngf, m.h_downsample, m.h_blocks, m.norm, m.normal_output)
+        self.H = Decomposer(m.h_ngf, m.h_downsample, m.h_blocks, m.norm, m.normal_output, m.h_upsample)
         self.D_I = MultiscaleDiscriminator(3, m.d_ndf, m.d_layers, m.d_scales, m.norm)
         self.cond_m = cfg.loss.adv_m_cond == "image"
         self.D_M = MultiscaleDiscriminator(9 + 3 * self.cond_m, m.d_ndf, m.d_layers, m.d_scales, m.norm)

@@ -74,11 +74,20 @@ def _encoder(in_ch: int, ngf: int, n_down: int, norm: str) -> tuple[list[nn.Modu
     return layers, ch
 
 
-def _decoder(ch: int, n_up: int, norm: str) -> tuple[list[nn.Module], int]:
+def upsample_layer(ch_in: int, ch_out: int, kind: str = "transposed") -> list[nn.Module]:
+    """Twice the resolution. "transposed": pix2pixHD's and CycleGAN's 3x3 stride-2 transposed
+    convolution, whose uneven kernel overlap stamps a 2x2 checkerboard on each level (Odena et al.,
+    2016, "Deconvolution and Checkerboard Artifacts"); "resize": nearest-neighbour upsampling, then a
+    3x3 convolution, which has no such pattern."""
+    if kind == "resize":
+        return [nn.Upsample(scale_factor=2, mode="nearest"), nn.ReflectionPad2d(1), nn.Conv2d(ch_in, ch_out, 3)]
+    return [nn.ConvTranspose2d(ch_in, ch_out, 3, stride=2, padding=1, output_padding=1)]
+
+
+def _decoder(ch: int, n_up: int, norm: str, upsample: str = "transposed") -> tuple[list[nn.Module], int]:
     layers: list[nn.Module] = []
     for _ in range(n_up):
-        layers += [nn.ConvTranspose2d(ch, ch // 2, 3, stride=2, padding=1, output_padding=1),
-                   norm_layer(norm, ch // 2), nn.ReLU(True)]
+        layers += [*upsample_layer(ch, ch // 2, upsample), norm_layer(norm, ch // 2), nn.ReLU(True)]
         ch //= 2
     return layers, ch
 
@@ -90,11 +99,11 @@ class ResnetGenerator(nn.Module):
     """
 
     def __init__(self, in_ch: int, out_ch: int, ngf: int = 64, n_down: int = 2, n_blocks: int = 9,
-                 norm: str = "instance", final: bool = True):
+                 norm: str = "instance", final: bool = True, upsample: str = "transposed"):
         super().__init__()
         enc, ch = _encoder(in_ch, ngf, n_down, norm)
         blocks = [ResnetBlock(ch, norm) for _ in range(n_blocks)]
-        dec, ch = _decoder(ch, n_down, norm)
+        dec, ch = _decoder(ch, n_down, norm, upsample)
         head = [nn.ReflectionPad2d(3), nn.Conv2d(ch, out_ch, 7), nn.Tanh()] if final else []
         self.model = nn.Sequential(*enc, *blocks, *dec, *head)
         self.out_features = ch
@@ -134,11 +143,11 @@ class Decomposer(nn.Module):
     """H = {H_N, H_A, H_F}: three ResNet generators, image -> 9 channels (normal, albedo, reflection)."""
 
     def __init__(self, ngf: int = 64, n_down: int = 2, n_blocks: int = 5, norm: str = "instance",
-                 normal_output: str = "tanh"):
+                 normal_output: str = "tanh", upsample: str = "transposed"):
         super().__init__()
-        self.h_n = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm)
-        self.h_a = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm)
-        self.h_f = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm)
+        self.h_n = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm, upsample=upsample)
+        self.h_a = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm, upsample=upsample)
+        self.h_f = ResnetGenerator(3, 3, ngf, n_down, n_blocks, norm, upsample=upsample)
         self.normal_output = normal_output
 
     def forward(self, img: torch.Tensor) -> torch.Tensor:
