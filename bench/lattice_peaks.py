@@ -23,9 +23,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from train.inference import load_run_checkpoint  # noqa: E402
+from train.networks import CHANNELS  # noqa: E402
 from train.probe import load_probe  # noqa: E402
 
-MAPS = {"normal": slice(0, 3), "albedo": slice(3, 6), "reflection": slice(6, 9)}
+MAPS = {"normal": CHANNELS["N"], "albedo": CHANNELS["A"], "reflection": CHANNELS["F"]}
 
 
 def upsampling(cfg) -> tuple[str, int]:
@@ -64,17 +65,20 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    rows, truth = [], {}
+    rows, probes, truth = [], {}, {}
     for item in args.runs:
         label, _, path = item.partition("=")
         if not path:
             sys.exit(f"{item!r}: expected LABEL=RUN_DIR")
         cfg, model, step, _ = load_run_checkpoint(Path(path))
         upsample, period = upsampling(cfg)
-        probe = load_probe(args.probe, cfg.data.height, cfg.data.width, limit=args.samples)
+        size = (cfg.data.height, cfg.data.width)
+        if size not in probes:  # runs trained at one size share the probe's images and maps
+            probes[size] = load_probe(args.probe, *size, limit=args.samples)
+        probe = probes[size]
         with torch.no_grad():
             pred = model.decompose(probe.images)
-        key = (cfg.data.height, cfg.data.width, period)
+        key = (*size, period)
         if key not in truth:
             truth[key] = {m: lattice_peak_ratio(probe.maps[:, sl], period) for m, sl in MAPS.items()}
         rows.append({"label": label, "run": path, "step": step, "upsample": upsample,

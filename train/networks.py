@@ -93,7 +93,8 @@ def _decoder(ch: int, n_up: int, norm: str, upsample: str = "transposed") -> tup
 
 
 class ResnetGenerator(nn.Module):
-    """c7s1-ngf, n_down stride-2 convs, n_blocks residual blocks, n_down transposed convs, c7s1-out, tanh.
+    """c7s1-ngf, n_down stride-2 convs, n_blocks residual blocks, n_down upsamplings (`upsample_layer`:
+    transposed convs by default), c7s1-out, tanh.
 
     pix2pixHD's GlobalGenerator is this with n_down=4, n_blocks=9; the paper's H nets use 5 blocks.
     """
