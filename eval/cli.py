@@ -415,7 +415,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="A config override for the Intrinsic Autoencoder's runs (the full model and its ablations; "
                    "the sanity settings: the full model), repeatable, to measure another objective on the same "
-                   "data, e.g. --set loss.w_shading_ren=3. Use another --out for each objective.")
+                   "data, e.g. --set loss.w_shading_ren=3; values of H's architecture (model.h_*, "
+                   "model.normal_output) also reach the oracle. Use another --out for each objective.")
 @click.option("--objective", type=click.Choice(["default", "paper"]), default="default", show_default=True,
               help="The Intrinsic Autoencoder's objective on the budget's networks: the measured defaults (the "
                    "deferred shader R; docs/normals_from_shading.md), or the paper's (its pix2pixHD R and Eq. 7, "
@@ -523,6 +524,10 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
     extra = plan.objective_sets()
     click.echo(f"  objective {objective}" + (f" on the {b.preset!r} preset's networks: {' '.join(extra)}" if extra else "")
                + (f"; --set {' '.join(overrides)}" if overrides else ""))
+    from train.config import h_architecture_overrides
+
+    if "oracle" in chosen and h_architecture_overrides(overrides):
+        click.echo(f"  oracle    the same H: --set {' '.join(h_architecture_overrides(overrides))}")
     click.echo(f"  hardware  {'%d GPU(s) via torchrun' % gpus if gpus else '%d CPU core(s)' % cores}, "
                f"{jobs} training(s) at a time")
     click.echo(f"  output    {plan.out}" + (f" (data in {plan.data_dir})" if data is not None else ""))

@@ -99,7 +99,7 @@ class Plan:
     car_rules: str | None = None
     photos: Path | None = None
     gallery: int = 8
-    overrides: tuple[str, ...] = ()  # --set for the Intrinsic Autoencoder's runs (not the oracle or baselines)
+    overrides: tuple[str, ...] = ()  # --set for the Intrinsic Autoencoder's runs (the oracle: H's architecture only)
     objective: str = "default"  # the Intrinsic Autoencoder's objective: the measured defaults or the paper's
     # the fraction of the frame the car covers in every generated set (iae-gen --min/--max-coverage),
     # matched to the photos' framing (eval/framing.py); None = the paper's camera rule
@@ -193,6 +193,10 @@ class Plan:
         sets += list(extra)
         if preset == b.preset and name != "oracle":
             sets += [*self.objective_sets(), *self.overrides]
+        elif name == "oracle":
+            from train.config import h_architecture_overrides
+
+            sets += h_architecture_overrides(self.overrides)
         data = self.data_dir
         cmd = ["fit", "--config", preset, "--intrinsics", str(data / "intrinsics"), "--real", str(self.real_dir),
                "--run-dir", str(self.out / "runs" / name), "--max-steps", str(b.steps), "--quiet",

@@ -165,7 +165,9 @@ class SanityPlan:
                 f"run.grid_every={max(1, b.steps // 6)}", f"run.checkpoint_every={max(1, b.steps // 6)}",
                 f"run.probe_every={max(1, b.steps // 24)}", *b.widths]
         if oracle:
-            over.append("model.kind=oracle")
+            from train.config import h_architecture_overrides
+
+            over += ["model.kind=oracle", *h_architecture_overrides(self.overrides)]
         else:
             over += list(self.overrides)
         cmd = [sys.executable, "-m", "train.cli", "fit", "--config", "cpu-small", "--intrinsics", str(sets["intrinsics"]),

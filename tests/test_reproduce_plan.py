@@ -203,6 +203,27 @@ def test_an_objective_override_reaches_the_autoencoders_runs_only():
         plan.check_configs()  # every run's config resolves (the gpu budget's oracle from the paper preset too)
 
 
+def test_an_override_of_h_s_architecture_also_reaches_the_oracle():
+    """The oracle is the ceiling of the same networks: an A/B of H's architecture (here its
+    upsampling) trains the oracle's H the same way, in the comparison and the sanity settings,
+    while objective values and R's settings stay with the autoencoder's runs."""
+    from eval.sanity import SANITY_BUDGETS, SanityPlan
+    from train.config import load_config
+
+    sets = ("model.h_upsample=resize", "loss.w_shading_ren=3", "model.r_ngf=12")
+    plan = Plan(BUDGETS["smoke"], Path("unused"), 0, 1, 1, 0, ["full", "oracle", "cyclegan"], overrides=sets)
+    oracle = load_config(*plan._config_args("oracle"))
+    assert oracle.model.kind == "oracle" and oracle.model.h_upsample == "resize"
+    assert oracle.loss.w_shading_ren == load_config(BUDGETS["smoke"].preset).loss.w_shading_ren
+    assert "model.r_ngf=12" not in plan.fit_command("oracle")
+    assert "model.h_upsample=resize" not in plan.fit_command("cyclegan")
+    sanity = SanityPlan(SANITY_BUDGETS["sanity-smoke"], "sanity-smoke", Path("unused"), 0, 1, 1, overrides=sets)
+    paths = {"intrinsics": Path("i"), "real": Path("r"), "probe": Path("p")}
+    oracle_cmd = sanity.fit_command("S0", "oracle", 0, True, paths)
+    assert "model.h_upsample=resize" in oracle_cmd and "loss.w_shading_ren=3" not in oracle_cmd
+    assert "loss.w_shading_ren=3" in sanity.fit_command("S0", "full_seed0", 0, False, paths)
+
+
 def test_every_budget_trains_the_default_objective_unless_the_paper_s_is_asked_for():
     """The `gpu` and `paper` budgets take the paper preset's widths; without the objective's values
     they trained the paper's R and Eq. 7 instead of the measured default. `--objective paper` puts the

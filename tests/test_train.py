@@ -56,24 +56,33 @@ def test_network_shapes(h, w):
     assert paper_r.R.model[1].in_channels == 6
 
 
-def test_resize_upsampling_draws_no_checkerboard_and_older_runs_keep_transposed_layers():
+def test_resize_and_subpixel_upsampling_start_without_checkerboard_and_older_runs_keep_transposed_layers():
     """On a constant input a stride-2 transposed 3x3 convolution gives even and odd pixels different
-    numbers of kernel taps (a 2x2 checkerboard); nearest upsampling + a 3x3 convolution gives one value."""
+    numbers of kernel taps (a 2x2 checkerboard); nearest upsampling + a 3x3 convolution gives one value,
+    and so does the sub-pixel layer as initialised (its four phase filters equal), until training
+    teaches the phases apart."""
     from train.config import Config, config_from_dict, validate
-    from train.networks import init_weights, upsample_layer
+    from train.networks import SubPixelUpsample, init_weights, upsample_layer
 
     torch.manual_seed(0)
     flat = torch.ones(1, 8, 8, 8)
     phases = {}
-    for kind in ("transposed", "resize"):
+    for kind in ("transposed", "resize", "subpixel"):
         layer = init_weights(nn.Sequential(*upsample_layer(8, 4, kind)))
         out = layer(flat)[0, :, 2:-2, 2:-2]  # away from the borders' padding
         assert out.shape[-2:] == (12, 12)
         phases[kind] = torch.stack([out[:, i::2, j::2] for i in (0, 1) for j in (0, 1)])  # the four 2x2 phases
     assert phases["resize"].std(dim=(0, 2, 3)).max() < 1e-6
+    assert phases["subpixel"].std(dim=(0, 2, 3)).max() < 1e-6
     assert phases["transposed"].mean(dim=(2, 3)).std(dim=0).min() > 1e-3
+    sub = SubPixelUpsample(8, 4)
+    with torch.no_grad():
+        sub.conv.weight[1::4] += 0.1  # one phase's filters changed, as training may change them
+    out = sub(flat)[0, :, 2:-2, 2:-2]
+    assert (out[:, 0::2, 1::2] - out[:, 0::2, 0::2]).abs().min() > 1e-3  # the phase (row 0, column 1) differs
     x3 = torch.randn(2, 3, 32, 64)
-    assert Decomposer(8, 2, 2, upsample="resize")(x3).shape == (2, 9, 32, 64)
+    for kind in ("resize", "subpixel"):
+        assert Decomposer(8, 2, 2, upsample=kind)(x3).shape == (2, 9, 32, 64)
     old = Config().to_dict()
     del old["model"]["h_upsample"]
     assert config_from_dict(old).model.h_upsample == "transposed"  # what every run before the option had

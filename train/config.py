@@ -454,7 +454,7 @@ def validate(cfg: Config) -> Config:
     _choice("cyclegan.gan", cfg.cyclegan.gan, ("bce", "lsgan"))
     _choice("munit.gan", cfg.munit.gan, ("bce", "lsgan"))
     _choice("model.normal_output", m.normal_output, ("tanh", "normalize"))
-    _choice("model.h_upsample", m.h_upsample, ("transposed", "resize"))
+    _choice("model.h_upsample", m.h_upsample, ("transposed", "resize", "subpixel"))
     _choice("model.norm", m.norm, ("instance", "batch"))
     _choice("model.renderer", m.renderer, ("net", "shader"))
     _choice("model.shader_residual_on", m.shader_residual_on, ("background", "everywhere"))
@@ -581,6 +581,16 @@ def objective_overrides(preset: str, objective: str) -> list[str]:
         value = want[section][name]
         out.append(f"{key}={json.dumps(value) if not isinstance(value, str) else value}")
     return out
+
+
+# H's architecture: the supervised oracle trains the same H, so its row stays the ceiling of the
+# networks measured when an A/B changes them
+H_ARCHITECTURE = ("model.h_ngf", "model.h_downsample", "model.h_blocks", "model.h_upsample", "model.normal_output")
+
+
+def h_architecture_overrides(overrides: list[str] | tuple[str, ...]) -> list[str]:
+    """The `KEY=VALUE` overrides among `overrides` that change H's architecture (H_ARCHITECTURE)."""
+    return [o for o in overrides if o.split("=", 1)[0].strip() in H_ARCHITECTURE]
 
 
 def objective_differences(a: Config, b: Config) -> list[str]:

@@ -42,6 +42,9 @@ def init_weights(module: nn.Module, scheme: str = "normal") -> nn.Module:
         elif isinstance(m, nn.BatchNorm2d) and scheme == "normal":
             nn.init.normal_(m.weight, 1.0, 0.02)
             nn.init.zeros_(m.bias)
+    for m in module.modules():
+        if isinstance(m, SubPixelUpsample):
+            m.tie_phases()
     return module
 
 
@@ -74,13 +77,42 @@ def _encoder(in_ch: int, ngf: int, n_down: int, norm: str) -> tuple[list[nn.Modu
     return layers, ch
 
 
+class SubPixelUpsample(nn.Module):
+    """A 3x3 convolution to four times the channels, then a pixel shuffle (Shi et al., 2016): each
+    output pixel of a 2x2 cell has its own filter, as in a transposed convolution, but every phase
+    sees the same 3x3 neighbourhood. The phases start equal (ICNR, Aitken et al., 2017), so the
+    layer starts as nearest-neighbour upsampling after a convolution, free of a checkerboard;
+    training may still teach the phases apart."""
+
+    def __init__(self, ch_in: int, ch_out: int):
+        super().__init__()
+        self.pad = nn.ReflectionPad2d(1)
+        self.conv = nn.Conv2d(ch_in, 4 * ch_out, 3)
+        self.shuffle = nn.PixelShuffle(2)
+        self.tie_phases()
+
+    @torch.no_grad()
+    def tie_phases(self) -> None:
+        """Copy each output channel's first phase filter to its other three (ICNR); `init_weights`
+        calls it again after drawing new weights."""
+        w, b = self.conv.weight, self.conv.bias
+        w.copy_(w[0::4].repeat_interleave(4, dim=0))  # PixelShuffle reads channel 4c + k as phase k of c
+        b.copy_(b[0::4].repeat_interleave(4))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.shuffle(self.conv(self.pad(x)))
+
+
 def upsample_layer(ch_in: int, ch_out: int, kind: str = "transposed") -> list[nn.Module]:
     """Twice the resolution. "transposed": pix2pixHD's and CycleGAN's 3x3 stride-2 transposed
     convolution, whose uneven kernel overlap stamps a 2x2 checkerboard on each level (Odena et al.,
     2016, "Deconvolution and Checkerboard Artifacts"); "resize": nearest-neighbour upsampling, then a
-    3x3 convolution, which has no such pattern."""
+    3x3 convolution, which has no such pattern; "subpixel": `SubPixelUpsample`, a filter per phase
+    like the transposed layer's, started without the pattern."""
     if kind == "resize":
         return [nn.Upsample(scale_factor=2, mode="nearest"), nn.ReflectionPad2d(1), nn.Conv2d(ch_in, ch_out, 3)]
+    if kind == "subpixel":
+        return [SubPixelUpsample(ch_in, ch_out)]
     return [nn.ConvTranspose2d(ch_in, ch_out, 3, stride=2, padding=1, output_padding=1)]
 
 
