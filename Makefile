@@ -74,6 +74,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_labeller.py
 	$(PY) bench/bench_train.py --kinds iae cyclegan munit
 	$(PY) bench/bench_train.py
+	$(PY) bench/h_upsample_speed.py
 	$(PY) bench/bench_eval.py
 	$(PY) bench/bench_export.py
 	$(PY) bench/bench_data_cache.py

@@ -91,3 +91,23 @@ def test_lattice_peaks_find_a_checkerboard_and_not_a_smooth_map():
     lattice = ((yy % 4 == 0) & (xx % 4 == 0)).float() * smooth.std()  # a dot every 4 pixels
     assert 0.5 < lattice_peak_ratio(smooth, 4) < 2
     assert lattice_peak_ratio(smooth + lattice, 4) > 10
+
+
+def test_h_upsample_speed_times_the_three_layers_and_counts_their_parameters(tmp_path):
+    """bench/h_upsample_speed.py: one row per upsampling kind; resize keeps the transposed layer's
+    parameter count, subpixel's four phases add to it; a malformed --size is refused by name."""
+    import json
+
+    out = tmp_path / "speed.json"
+    proc = subprocess.run([sys.executable, "bench/h_upsample_speed.py", "--size", "16x32", "--batch", "1",
+                           "--rounds", "1", "--repeats", "1", "--json", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = {r["upsample"]: r for r in json.loads(out.read_text())["rows"]}
+    assert set(rows) == {"transposed", "resize", "subpixel"}
+    assert rows["resize"]["params"] == rows["transposed"]["params"] < rows["subpixel"]["params"]
+    assert all(r["ms"] > 0 for r in rows.values()) and rows["transposed"]["relative"] == 1.0
+    assert proc.stdout.count("\n| ") == 4  # the header and three rows
+    bad = subprocess.run([sys.executable, "bench/h_upsample_speed.py", "--size", "64"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert bad.returncode != 0 and "--size" in bad.stderr

@@ -46,12 +46,14 @@ class ModelConfig:
     h_downsample: int = 2
     h_blocks: int = 5
     normal_output: str = "tanh"  # "tanh" + the normal-length loss (the paper), or "normalize"
-    # How H's decoders double the resolution: "transposed" (the paper's pix2pixHD/CycleGAN layers) or
+    # How H's decoders double the resolution: "transposed" (the paper's pix2pixHD/CycleGAN layers),
     # "resize" (nearest-neighbour upsampling + 3x3 convolution, free of the transposed layers'
-    # checkerboard). Measured at the cpu budget (seeds 21, 22): resize takes the lattice peaks of H's
-    # maps from 2.1-3.2 to 1.0-1.4 (truth 1.0-1.1) and its speckle from 0.46 to 0.29, normals level
-    # (0.5 / 0.2 deg better), albedo 1.2 / 1.9 and reflection 1.8 / 1.6 worse: not the default
-    # (docs/normals_from_shading.md, "H's upsampling").
+    # checkerboard) or "subpixel" (a convolution to four phases + pixel shuffle, ICNR-initialised).
+    # Measured at the cpu budget (seeds 21, 22) against transposed: resize takes the lattice peaks of
+    # H's maps from 2.1-3.2 to 1.0-1.4 (truth 1.0-1.1), normals level, albedo 1.2 / 1.9 and reflection
+    # 1.8 / 1.6 worse; subpixel has normals 1.0 / 1.2 deg better (0.6-1.4 on S0/S1, 3 seeds), peaks
+    # 1.7-2.6, reflection level, albedo 1.0 / 0.5 worse. The committed comparison was trained with transposed, which stays the
+    # default until it is rerun (docs/normals_from_shading.md, "H's upsampling").
     h_upsample: str = "transposed"
     # Not in the paper: "net" = R is the pix2pixHD generator alone (the paper); "shader" = R is a
     # deferred shader, lin(A) x SH(N; learned lighting) + gain x lin(F) (train.shading), plus the
