@@ -74,8 +74,7 @@ def prepare_output(out: Path, recipe: Recipe, count: int, shard: tuple[int, int]
     elif out.exists() and not folder_is_empty(out):
         raise GenerationError(f"--out {out}: folder is not empty and holds no dataset.json; refusing to mix files")
     (out / "samples").mkdir(parents=True, exist_ok=True)
-    for stale in [*(out / "samples").glob(".*.tmp*"), *out.glob(".*.tmp*")]:  # left by a killed writer
-        stale.unlink()
+    _remove_temporaries(out)  # left by a killed writer
     rows = read_manifest(out / "manifest.jsonl")
     good, bad = verify_rows(out, rows)
     for row, why in bad:
@@ -340,6 +339,7 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int | str, 
                         raise Interrupted(stop["signum"])
             except BaseException:
                 _stop_pool(pool)  # queued work must not keep running after a failure or Ctrl-C
+                _remove_temporaries(out)  # a killed worker's half-written file must not outlive the run
                 raise
             pool.shutdown()
     except BaseException:
@@ -362,12 +362,25 @@ def _generate_locked(recipe: Recipe, out: Path, count: int, workers: int | str, 
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:
-    """Cancel queued work and end the workers now (shutdown alone waits for running chunks)."""
+    """Cancel queued work and end the workers now (shutdown alone waits for running chunks); returns
+    once they are gone, so that nothing they were writing can appear afterwards."""
     procs = list(getattr(pool, "_processes", {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
         if proc.is_alive():
             proc.kill()
+    for proc in procs:
+        proc.join(timeout=10)
+
+
+def _remove_temporaries(out: Path) -> None:
+    """Delete the dot-named temporaries of unfinished writes (this process holds the folder's lock,
+    so every one is ours or a stopped worker's)."""
+    for stale in [*(out / "samples").glob(".*.tmp*"), *out.glob(".*.tmp*")]:
+        try:
+            stale.unlink(missing_ok=True)
+        except OSError:  # a read-only folder: the next run removes it, and the first error must surface
+            pass
 
 
 def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:
