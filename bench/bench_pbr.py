@@ -59,7 +59,8 @@ def main() -> None:
                          "default: the generator's, which the reference keeps")
     ap.add_argument("--cycles", nargs="+", default=[""], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="scene.cycles settings of the timed renders, one variant per argument (e.g. "
-                         "blur_glossy=1.0,glossy_bounces=2); '' is the generator's; the reference keeps it")
+                         "blur_glossy=1.0,glossy_bounces=2; world.sample_map_resolution=2048 for the world's); '' is the "
+                         "generator's; the reference keeps it")
     args = ap.parse_args()
     variants = [parse_cycles(v, ap) for v in args.cycles]
     denoise = []
@@ -81,10 +82,13 @@ def main() -> None:
         if pattern:
             r.scene.cycles.sampling_pattern = pattern
         for key, value in (cycles or {}).items():
-            if not hasattr(r.scene.cycles, key):
-                raise SystemExit(f"--cycles: scene.cycles has no setting {key!r}")
+            # 'world.KEY' sets the world's Cycles settings (its light-sampling map), the rest scene.cycles
+            target, name = (r.scene.world.cycles, key[6:]) if key.startswith("world.") else (r.scene.cycles, key)
+            if not hasattr(target, name):
+                raise SystemExit(f"--cycles: {'world' if target is not r.scene.cycles else 'scene'}.cycles "
+                                 f"has no setting {name!r}")
             try:
-                setattr(r.scene.cycles, key, value)
+                setattr(target, name, value)
             except (TypeError, ValueError) as exc:
                 raise SystemExit(f"--cycles {key}={value!r}: {exc}") from None
         r.render_layers(0)  # builds the car, the sky and the light-sampling map
