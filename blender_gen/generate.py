@@ -376,7 +376,7 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
 def _remove_temporaries(out: Path) -> None:
     """Delete the dot-named temporaries of unfinished writes (this process holds the folder's lock,
     so every one is ours or a stopped worker's)."""
-    for stale in [*(out / "samples").glob(".*.tmp*"), *out.glob(".*.tmp*")]:
+    for stale in [p for d in (out, out / "samples", out / "previews") for p in d.glob(".*.tmp*")]:
         try:
             stale.unlink(missing_ok=True)
         except OSError:  # a read-only folder: the next run removes it, and the first error must surface

@@ -220,10 +220,12 @@ def test_resume_after_kill_finishes_with_identical_files(tmp_path):
     with open(out / "manifest.jsonl", "a") as fh:
         fh.write(f'{{"index": {missing}, "file": "samples/00')
     (out / "samples" / f".{missing:06d}.exr.tmp999").write_bytes(b"partial")
+    (out / "previews").mkdir(exist_ok=True)
+    (out / "previews" / f".{missing:06d}.png.tmp999").write_bytes(b"partial")  # a PBR worker's preview
     kept = {r["file"]: os.stat(out / r["file"]).st_mtime_ns for r in before}
     run_gen("intrinsics", "--out", str(out), *recipe)
     assert _files(out) == _files(whole)
-    assert not list((out / "samples").glob(".*"))
+    assert not list((out / "samples").glob(".*")) and not list((out / "previews").glob(".*"))
     for f, mtime in kept.items():
         assert os.stat(out / f).st_mtime_ns == mtime, f"{f} was finished and must not be redone"
     assert sorted(r["index"] for r in read_manifest(out / "manifest.jsonl")) == list(range(n))
