@@ -153,6 +153,22 @@ def sky_cache_dir() -> Path | None:
 _SOURCE_KEY = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:16]
 
 
+def _remove_dead_temporaries(folder: Path) -> None:
+    """Delete the temporaries of writers that died before their rename (a sky is 6 MB); a live
+    writer's file stays, and one deleted by mistake only costs that writer its cache entry."""
+    for tmp in folder.glob(".sky*.tmp"):
+        try:
+            pid = int(tmp.name.split(".")[-2])
+        except ValueError:  # not a name this module writes
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except (PermissionError, OverflowError):  # another user's live process; not a pid
+            pass
+
+
 def cached_procedural_sky(variant: int, width: int = 1024, height: int = 512) -> np.ndarray:
     """`procedural_sky`, built once per machine rather than once per worker process (about 1 s
     each, 8 per worker otherwise): the same array, bit for bit. A missing, unreadable or wrong-shaped
@@ -171,6 +187,7 @@ def cached_procedural_sky(variant: int, width: int = 1024, height: int = 512) ->
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             folder.mkdir(parents=True, exist_ok=True)
+            _remove_dead_temporaries(folder)
             with open(tmp, "wb") as fh:
                 np.save(fh, arr, allow_pickle=False)
             os.replace(tmp, path)  # readers see the whole file or none

@@ -147,6 +147,14 @@ def test_cached_sky_is_the_built_sky_bit_for_bit_and_a_broken_cache_file_is_rebu
     monkeypatch.setenv("IAE_CACHE_DIR", "none")
     assert envmap.sky_cache_dir() is None and np.array_equal(cached_procedural_sky(5, 64, 32), built)
     assert not list((tmp_path / "cache" / "skies").glob(".*.tmp"))
+    # a writer killed before its rename leaves a temporary; the next build removes it, not a live one's
+    monkeypatch.setenv("IAE_CACHE_DIR", str(tmp_path / "cache"))
+    dead = file.with_name(f".{file.name}.999999999.tmp")
+    live = file.with_name(f".{file.name}.{os.getppid()}.tmp")  # a live process other than this writer
+    dead.write_bytes(b"partial"), live.write_bytes(b"partial")
+    file.unlink()
+    assert np.array_equal(cached_procedural_sky(5, 64, 32), built) and file.exists()
+    assert not dead.exists() and live.exists()
 
 
 def test_network_space_conversions():
