@@ -89,6 +89,17 @@ def temp_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp{os.getpid()}")
 
 
+def remove_temporaries(*folders: Path) -> None:
+    """Delete the `temp_name` files of writes that never finished (a killed process leaves them).
+    Call it only while holding the folders' lock: then no live writer owns one."""
+    for folder in folders:
+        for stale in Path(folder).glob(".*.tmp*"):
+            try:
+                stale.unlink(missing_ok=True)
+            except OSError:  # a read-only folder: a later run removes it, and the caller's error must surface
+                pass
+
+
 def _write_failed(path: Path, tmp: Path, exc: BaseException) -> DatasetWriteError:
     """Remove the temporary and describe the failure in one line that names the file."""
     try:

@@ -21,7 +21,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .dataset import (MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
-                      folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, verify_rows, write_manifest)
+                      folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, remove_temporaries, verify_rows,
+                      write_manifest)
 from .cars.spec import PARTS
 from .recipe import Recipe, identity_diff
 
@@ -374,13 +375,8 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
 
 
 def _remove_temporaries(out: Path) -> None:
-    """Delete the dot-named temporaries of unfinished writes (this process holds the folder's lock,
-    so every one is ours or a stopped worker's)."""
-    for stale in [p for d in (out, out / "samples", out / "previews") for p in d.glob(".*.tmp*")]:
-        try:
-            stale.unlink(missing_ok=True)
-        except OSError:  # a read-only folder: the next run removes it, and the first error must surface
-            pass
+    """A dataset's temporaries (this process holds the folder's lock: every one is a dead writer's)."""
+    remove_temporaries(out, out / "samples", out / "previews")
 
 
 def merge(out: Path, shards: list[Path], progress: bool = True) -> dict:

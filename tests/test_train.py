@@ -473,7 +473,9 @@ def test_resume_survives_torn_stats_and_truncated_checkpoints(data, tmp_path):
     (ckpts / "latest.json").write_text('{"step": 6, "na')
     newest = ckpts / "step_00000006.safetensors"
     newest.write_bytes(newest.read_bytes()[:1000])  # truncated by a crash or a full disk
+    (ckpts / ".step_00000009.safetensors.tmp999").write_bytes(b"\0" * 1000)  # a save killed mid-write
     proc = _run("fit", "--run-dir", str(run), "--max-steps", "8", "--quiet")
+    assert not list(ckpts.glob(".*.tmp*"))
     assert "skipped an unreadable checkpoint" in proc.stderr and "step_00000006.safetensors" in proc.stderr
     assert "step 8 (5 steps" in proc.stdout  # resumed from step 3
     steps = [r["step"] for r in _stats(run)]

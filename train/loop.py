@@ -21,7 +21,8 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from blender_gen.dataset import LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, save_png, write_json_lines
+from blender_gen.dataset import (LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, remove_temporaries,
+                                 save_png, write_json_lines)
 from .checkpoint import (CheckpointError, latest_checkpoint, load_ema, load_newest, load_weights, newest_state,
                          save_checkpoint)
 from .config import Config, ConfigError, config_from_dict, differing_sections, unread_sections
@@ -427,6 +428,8 @@ def fit(run_dir: Path, cfg: Config | None = None, intrinsics: str | None = None,
     created = not run_dir.exists()
     try:
         with locked_folder(run_dir, "--run-dir"):
+            # a training killed mid-write leaves a temporary (a checkpoint's can be hundreds of MB)
+            remove_temporaries(run_dir, run_dir / "checkpoints", run_dir / "grids")
             return _fit(run_dir, cfg, intrinsics, real, max_steps, device, progress, probe, accept_changed_data,
                         init_from)
     except BaseException:
