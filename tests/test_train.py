@@ -653,3 +653,59 @@ def test_a_run_records_its_compute_and_a_resume_on_other_compute_says_so(data, t
         assert json.loads((run / "training_options.json").read_text())["compute"]["threads"] == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_python_api_decomposes_and_renders_numpy_images_as_the_cli_does(data, tmp_path, monkeypatch):
+    """`train.load_run(RUN)`: decompose takes uint8 / float / PIL pictures of any size and returns the
+    maps at that size, the same maps `iae-train decompose` writes; render takes those maps (or a
+    dataset sample, or an HxWx9 array); the guide's example runs as written."""
+    import re
+
+    from PIL import Image
+
+    import train
+    from blender_gen.conversions import linear_to_srgb
+    from blender_gen.dataset import open_dataset
+
+    intr, photos = data
+    run_dir = tmp_path / "runs" / "paper"
+    _run("fit", "--config", "cpu-small", "--intrinsics", str(intr), "--real", str(photos), "--run-dir", str(run_dir),
+         "--max-steps", "2", "--quiet", *TINY)
+    rng = np.random.default_rng(3)
+    pixels = rng.integers(0, 256, (200, 300, 3), dtype=np.uint8)
+    (tmp_path / "shots").mkdir()
+    Image.fromarray(pixels).save(tmp_path / "shots" / "my_car.png")
+    run = train.load_run(run_dir)
+    assert run.step == 2 and run.weights == "moving average" and run.checkpoint.name.endswith(".safetensors")
+    maps = run.decompose(pixels)
+    assert set(maps) == {"normal", "albedo", "reflection"}
+    assert all(v.shape == (200, 300, 3) and v.dtype == np.float32 for v in maps.values())
+    for same in (Image.fromarray(pixels), pixels / 255.0, pixels.astype(np.uint16) * 257):
+        again = run.decompose(same)
+        assert max(np.abs(again[k] - maps[k]).max() for k in maps) < 1e-5
+    # what the command writes for the same photo (an 8-bit sRGB picture of the same albedo)
+    _run("decompose", "--run", str(run_dir), "--images", str(tmp_path / "shots"), "--out", str(tmp_path / "d"),
+         "--quiet")
+    written = np.asarray(Image.open(tmp_path / "d" / "photos" / "my_car_albedo.png"), dtype=np.float64)
+    assert np.abs(linear_to_srgb(maps["albedo"]) * 255 - written).max() <= 1.0
+    image = run.render(maps)
+    assert image.shape == (200, 300, 3) and image.dtype == np.float32 and 0 <= image.min() <= image.max() <= 1
+    stack = np.concatenate([maps[k] for k in ("normal", "albedo", "reflection")], axis=-1)
+    assert np.array_equal(run.render(stack), image)
+    sample = next(open_dataset(intr).samples(["normal", "albedo", "reflection"]))
+    assert run.render(sample).shape == (32, 64, 3) and run.render(sample, size=(128, 64)).shape == (64, 128, 3)
+    assert run.decompose(pixels, size=(64, 32))["albedo"].shape == (32, 64, 3)
+    assert run.reconstruct(pixels).shape == (200, 300, 3)
+    with pytest.raises(ValueError, match=r"expected an \(H, W, 3\) array.*got shape \(5, 5, 2\)"):
+        run.decompose(np.zeros((5, 5, 2)))
+    with pytest.raises(ValueError, match="float values must be sRGB in"):
+        run.decompose(np.full((8, 8, 3), 200.0))
+    with pytest.raises(ValueError, match="missing reflection"):
+        run.render({"normal": maps["normal"], "albedo": maps["albedo"]})
+    # the guide's example, as written, where runs/paper and my_car.jpg exist
+    page = (ROOT / "docs" / "dataset_format.md").read_text()
+    example = re.search(r"## Trained networks from Python\n\n```python\n(.*?)```", page, re.S).group(1)
+    Image.fromarray(pixels).save(tmp_path / "my_car.jpg")
+    monkeypatch.chdir(tmp_path)
+    exec(compile(example, "docs/dataset_format.md", "exec"), {})
+    assert Image.open(tmp_path / "my_car_render.png").size == (300, 200)

@@ -92,6 +92,12 @@ def write_model_card(run: RunFolder, cfg: Config, opts: dict, model, step: int) 
         f"iae-train render --run {run.root} --intrinsics DATASET --out frames/   # R: images from intrinsics",
         f"iae-train export --run {run.root} --net H --out H.onnx                # for other runtimes",
         "```", "",
+        "```python",
+        "import train",
+        f"run = train.load_run({str(run.root)!r})",
+        "maps = run.decompose(photo)   # an (H, W, 3) array or PIL image -> normal, albedo, reflection at its size",
+        "image = run.render(maps)      # (H, W, 3) sRGB in [0, 1]",
+        "```", "",
         "## Limits", "", LIMITS, "",
         "Full configuration: `training_options.json`; curves: `stats.jsonl`, `probe.png`, TensorBoard.", ""]
     path = run.root / "MODEL_CARD.md"
