@@ -66,8 +66,8 @@ def test_nan_in_a_sample_names_the_sample(tmp_path, trained):
 
 
 def test_decompose_skips_a_bomb_image_and_writes_the_others_whole(tmp_path, trained):
-    """A decompression-bomb photo among good ones: named and skipped (exit 1), no traceback, and
-    the other photos' predictions written as a complete set that records the skipped one."""
+    """A decompression-bomb photo among good ones: named and skipped (exit 1 only with --strict), no
+    traceback, and the other photos' predictions written as a complete set that records the skipped one."""
     from PIL import Image
 
     run, _, clean = trained
@@ -75,7 +75,7 @@ def test_decompose_skips_a_bomb_image_and_writes_the_others_whole(tmp_path, trai
     big = Image.new("1", (14000, 14000))  # 196 MP: over twice Pillow's limit, a bomb
     big.save(photos / "zz_bomb.png", optimize=False, compress_level=1)
     out = tmp_path / "pred"
-    bad = _train("decompose", "--run", str(run), "--images", str(photos), "--out", str(out), "--quiet")
+    bad = _train("decompose", "--run", str(run), "--images", str(photos), "--out", str(out), "--quiet", "--strict")
     assert bad.returncode == 1 and "zz_bomb.png" in bad.stderr and "Traceback" not in bad.stderr
     info = json.loads((out / "dataset.json").read_text())
     n = len(list(clean.iterdir()))

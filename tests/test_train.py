@@ -291,13 +291,35 @@ def test_render_and_decompose_commands(data, tmp_path):
     (shots / "IMG_0001.HEIC").write_bytes(b"\0" * 64)  # not read here: named, not silently dropped
     res = _run("decompose", "--run", str(run), "--images", str(shots), "--out", str(tmp_path / "p"), "--quiet",
                check=False)
-    assert res.returncode == 1 and "1 photo(s) could not be read and were skipped (broken.jpg)" in res.stderr
+    assert res.returncode == 0 and "skipped: 1 photo(s) could not be read and were skipped (broken.jpg)" in res.stderr
     assert "Traceback" not in res.stderr
     assert "1 photo(s) in formats not read here (.heic; first IMG_0001.HEIC) are left out" in res.stderr
     gallery = tmp_path / "p" / "photos"
     assert Image.open(gallery / "square_jpg_normal.png").size == (300, 300)  # no crop to 2:1
     assert Image.open(gallery / "square_webp_normal.png").size == (200, 100)  # neither overwrites the other
     assert Image.open(gallery / "street__photo_1_albedo.png").size == (90, 60)
+    from blender_gen.dataset import read_exr
+
+    maps = read_exr(gallery / "square_jpg.exr")  # the maps in full precision, the datasets' units
+    assert {k: v.shape for k, v in maps.items()} == {k: (300, 300, 3) for k in ("normal", "albedo", "reflection")}
+    png = np.asarray(Image.open(gallery / "square_jpg_albedo.png"), dtype=np.float64)
+    from blender_gen.conversions import linear_to_srgb
+
+    assert np.abs(linear_to_srgb(maps["albedo"]) * 255 - png).max() <= 1.5  # half floats, 8-bit rounding
+    strict = _run("decompose", "--run", str(run), "--images", str(shots), "--out", str(tmp_path / "s"), "--quiet",
+                  "--strict", "--size", "64", check=False)
+    assert strict.returncode == 1 and "broken.jpg" in strict.stderr and "Traceback" not in strict.stderr
+    assert Image.open(tmp_path / "s" / "photos" / "square_jpg_normal.png").size == (64, 64)  # the longer side
+    assert Image.open(tmp_path / "s" / "photos" / "square_webp_normal.png").size == (64, 32)
+    sized = _run("decompose", "--run", str(run), "--images", str(photos), "--out", str(tmp_path / "z"), "--quiet",
+                 "--size", "40x30")
+    assert Image.open(tmp_path / "z" / "photos" / "photo_0_render.png").size == (40, 30)
+    # the predictions dataset does not depend on --size
+    assert np.array_equal(open_dataset(tmp_path / "z", kinds=("predictions",)).load(0)["albedo"], preds.load(0)["albedo"])
+    for bad_size in ("0", "12xx", "big"):
+        bad = _run("decompose", "--run", str(run), "--images", str(photos), "--out", str(tmp_path / "q"), "--quiet",
+                   "--size", bad_size, check=False)
+        assert bad.returncode == 1 and f"--size {bad_size!r}: expected photo, a longer side" in bad.stderr
     panel = Image.open(gallery / "square_jpg.png")
     assert panel.size == (5 * 256, 18 + 256)  # photo, normal, albedo, reflection, R(H(photo)); a title row
     assert "street/photo_0.jpg" in (gallery / "index.html").read_text()

@@ -160,21 +160,35 @@ def render(run_dir, intrinsics, out, style_seed, limit, device, video, side_by_s
 @click.option("--out", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="A new or empty folder for the predictions dataset.")
 @click.option("--limit", type=click.IntRange(1), default=None, help="Only the first N images (default: all).")
+@click.option("--size", default=None, metavar="photo|N|WxH",
+              help="Photos' maps: at each photo's own size (photo, the default; at most 2048 a side), with the "
+                   "longer side N (aspect kept), or exactly WIDTHxHEIGHT.")
+@click.option("--strict", is_flag=True, help="Exit with status 1 when a photo could not be read (default: skip it, "
+                                             "name it and say how many).")
 @click.option("--device", default="auto", show_default=True)
 @click.option("--quiet", is_flag=True)
-def decompose(run_dir, images, out, limit, device, quiet) -> None:
+def decompose(run_dir, images, out, limit, size, strict, device, quiet) -> None:
     """Apply H to photos or a PBR dataset: normal, albedo and reflection.
 
-    Photos: H sees each whole photo (aspect kept); OUT/photos/ holds NAME_normal/_albedo/
-    _reflection/_render.png at the photo's size and a labelled panel NAME.png per photo
-    (index.html shows them all). An unreadable photo is skipped and named (exit status 1); the
+    Photos: H sees each whole photo (aspect kept, no crop, no padding: resized to about the pixel
+    count it trained at); OUT/photos/ holds NAME_normal/_albedo/_reflection/_render.png and
+    NAME.exr (the maps in linear light, float) at the photo's size (--size), and a labelled panel
+    NAME.png per photo (index.html shows them all). An unreadable photo is skipped and named; the
     others are written. Always: an EXR predictions dataset at the training size (the PBR set's
     resolution for a PBR set, which `iae-eval decomposition` scores)."""
-    from .inference import decompose_images
+    from .inference import PhotosSkipped, decompose_images
+    from .photos import parse_size
 
     _note_unread_photos(images, "--images")
     with one_line_errors():
-        path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet)
+        try:
+            path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet,
+                                    size=parse_size(size))
+        except PhotosSkipped as exc:
+            if strict:
+                raise
+            click.echo(f"skipped: {exc}", err=True)
+            path = exc.out
     gallery = path / "photos" / "index.html"
     click.echo(f"{path}: predictions written" + (f"; open {gallery}" if gallery.exists() else ""))
 

@@ -120,26 +120,28 @@ def render_dataset(run_dir: Path, intrinsics: Path, out: Path, device: str = "cp
 @torch.no_grad()
 def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu", batch: int = 4,
                      limit: int | None = None, progress: bool = True, checkpoint: Path | None = None,
-                     h_at: str = "train") -> Path:
+                     h_at: str = "train", size: int | tuple[int, int] | None = None) -> Path:
     """H applied to photos or a PBR dataset, written as a `predictions` dataset (EXR + PNG previews).
 
     Predictions of a PBR dataset are resized back to its resolution and keep its sample
     indices, so `iae-eval decomposition --predictions` compares them pixel by pixel. `h_at`:
     "train" runs H on the images resized to its training size (the default: what it learned on),
     "native" at the PBR set's own resolution (H is fully convolutional; cars then appear larger
-    than in training).
+    than in training). `size` (photos only): the maps' size in photos/, as `train.photos.output_size`.
     """
     if h_at not in ("train", "native"):
         raise ValueError(f"h_at {h_at!r}: expected 'train' or 'native'")
     cfg, model, step = load_run(run_dir, device, checkpoint)
     reals = RealImages(images, cfg.data.height, cfg.data.width)
+    if size is not None and reals.ds is not None:
+        raise DatasetError(f"--size: {images} is a PBR set, whose predictions keep its resolution; --size is for photos")
     if h_at == "native" and reals.ds is not None:
         w, h = reals.ds.resolution
         reals = RealImages(images, h, w)
     n = len(reals) if limit is None else min(limit, len(reals))
     out = fresh_output(out)
     try:
-        return _decompose_into(out, run_dir, images, cfg, model, step, reals, n, device, batch, limit, progress)
+        return _decompose_into(out, run_dir, images, cfg, model, step, reals, n, device, batch, limit, progress, size)
     except PhotosSkipped:  # the readable photos are written and complete; the error names the others
         raise
     except BaseException:  # a bad image mid-way: no half-written predictions that look like a result
@@ -151,7 +153,7 @@ def decompose_images(run_dir: Path, images: Path, out: Path, device: str = "cpu"
 
 @torch.no_grad()
 def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model, reals, n: int, device: str,
-                      progress: bool) -> Path:
+                      progress: bool, size: int | tuple[int, int] | None) -> Path:
     """Photos one by one (their sizes differ): H on the whole photo, aspect kept (train.photos); the
     dataset's EXR sample is the training-size centre crop of those maps (what the dataset format
     and the scorer read); photos/ holds the maps at the photo's size, named after it, and a
@@ -176,9 +178,10 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
         maps = model.decompose(img).float()
         rerender = model.reconstruct(img, maps) if hasattr(model, "reconstruct") else model.render(maps)
         name = names[i]
-        full = resize(maps[0].cpu(), *output_size(*photo.shape[-2:]))  # once, for the pictures and the crop
+        native = resize(maps[0].cpu(), *output_size(*photo.shape[-2:]))  # the photo's size: the dataset's crop
+        full = native if size is None else resize(maps[0].cpu(), *output_size(*photo.shape[-2:], size))
         write_photo_outputs(gallery, name, photo, full, rerender[0].cpu())
-        crop = cover_crop(full, cfg.data.height, cfg.data.width)
+        crop = cover_crop(native, cfg.data.height, cfg.data.width)  # the same whatever --size asks for
         arr = crop.permute(1, 2, 0).cpu().numpy()
         layers = {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(INTRINSIC_LAYERS)}
         save_png(out / "previews" / f"{i:06d}.png",
@@ -207,7 +210,7 @@ class PhotosSkipped(DatasetError):
 
 @torch.no_grad()
 def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: int, reals, n: int, device: str,
-                    batch: int, limit: int | None, progress: bool) -> Path:
+                    batch: int, limit: int | None, progress: bool, size: int | tuple[int, int] | None = None) -> Path:
     (out / "previews").mkdir(exist_ok=True)
     if reals.ds is not None:
         src_w, src_h = reals.ds.resolution
@@ -222,7 +225,7 @@ def _decompose_into(out: Path, run_dir: Path, images: Path, cfg, model, step: in
         # H is fully convolutional; by default it runs at the size it trained at and its maps are resized back
         "network_size": [reals.w, reals.h]})
     if reals.ds is None:
-        return _decompose_photos(out, writer, images, cfg, model, reals, n, device, progress)
+        return _decompose_photos(out, writer, images, cfg, model, reals, n, device, progress, size)
     for start in tqdm(range(0, n, batch), desc="decompose", unit="batch", disable=not progress):
         idx = list(range(start, min(n, start + batch)))
         img = torch.stack([reals[(i, False)] for i in idx]).to(device)

@@ -17,7 +17,9 @@ import torch
 import torch.nn.functional as F
 from PIL import Image, ImageDraw
 
-from blender_gen.dataset import save_png
+from blender_gen.conversions import from_network
+from blender_gen.dataset import INTRINSIC_LAYERS as MAP_KEYS
+from blender_gen.dataset import save_png, write_exr
 
 from .data import resize
 from .loop import to_display
@@ -35,9 +37,28 @@ def network_size(h: int, w: int, train_h: int, train_w: int) -> tuple[int, int]:
             max(SIDE_MULTIPLE, round(w * scale / SIDE_MULTIPLE) * SIDE_MULTIPLE))
 
 
-def output_size(h: int, w: int) -> tuple[int, int]:
-    scale = min(1.0, MAX_SIDE / max(h, w))
+def output_size(h: int, w: int, size: int | tuple[int, int] | None = None) -> tuple[int, int]:
+    """(height, width) of a photo's maps: its own size (at most MAX_SIDE a side) by default; `size`
+    an int: that longer side, aspect kept; a (width, height) pair: exactly that."""
+    if isinstance(size, tuple):
+        return size[1], size[0]
+    scale = min(1.0, MAX_SIDE / max(h, w)) if size is None else size / max(h, w)
     return max(1, round(h * scale)), max(1, round(w * scale))
+
+
+def parse_size(text: str | None) -> int | tuple[int, int] | None:
+    """`--size`: None or 'photo' (each photo's own size), 'N' (longer side N) or 'WIDTHxHEIGHT'."""
+    if text is None or text.strip().lower() == "photo":
+        return None
+    parts = text.lower().split("x")
+    try:
+        values = [int(v) for v in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or min(values) < 1 or max(values) > 4 * MAX_SIDE:
+        raise ValueError(f"--size {text!r}: expected photo, a longer side such as 1024, or WIDTHxHEIGHT such as "
+                         f"640x480 (1 to {4 * MAX_SIDE} pixels a side)")
+    return values[0] if len(values) == 1 else (values[0], values[1])
 
 
 def photo_name(path: Path, root: Path) -> str:
@@ -71,7 +92,7 @@ def photo_names(paths: list[Path], root: Path) -> list[str]:
 
 def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, full: torch.Tensor,
                         rerender: torch.Tensor) -> Path:
-    """NAME_normal/_albedo/_reflection/_render.png and the labelled panel NAME.png. `photo` (3, H, W),
+    """NAME_normal/_albedo/_reflection/_render.png, the maps as NAME.exr and the labelled panel NAME.png. `photo` (3, H, W),
     `full`: H's maps (9, h, w) already at `output_size` of the photo, `rerender` (3, h', w'), network space."""
     h, w = full.shape[-2:]
     # interpolated normals are shorter than unit length: the picture shows them normalised
@@ -79,6 +100,9 @@ def write_photo_outputs(folder: Path, name: str, photo: torch.Tensor, full: torc
              "reflection": full[6:9].float(), "render": resize(rerender.float(), h, w)}
     for key, t in tiles.items():  # OUTPUT_KEYS
         save_png(folder / f"{name}_{key}.png", to_display(t))
+    # the maps in full precision and the datasets' units (linear colour; normals as H gives them)
+    arr = full.float().permute(1, 2, 0).cpu().numpy()
+    write_exr(folder / f"{name}.exr", {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(MAP_KEYS)})
     ph = PANEL_HEIGHT
     pw = max(1, round(w * ph / h))
     pictures = [resize(photo.float(), ph, pw)] + [resize(t, ph, pw) for t in tiles.values()]
