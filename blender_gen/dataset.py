@@ -460,6 +460,21 @@ def locked_folder(root: Path, option: str = "--out", wait: Callable[[str], None]
         os.close(fd)  # closing releases the lock
 
 
+@contextmanager
+def reading_folder(root: Path):
+    """A reader's shared lock on a dataset folder: yields True while held, False (holding nothing)
+    when a writer holds the folder. Readers do not exclude each other, nor `lock_holder`'s check,
+    so a training can start on a set that another process is only verifying."""
+    import fcntl
+
+    path = Path(root) / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        yield _try_lock(fd, fcntl.LOCK_SH) is None
+    finally:
+        os.close(fd)
+
+
 def verify_rows(root: Path, rows: list[dict]) -> tuple[list[dict], list[tuple[dict, str]]]:
     """Split rows into those whose file exists with the recorded sha256 and the others."""
     good, bad = [], []

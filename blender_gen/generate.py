@@ -21,8 +21,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .dataset import (MAX_INDEX, DatasetError, DatasetWriter, atomic_target, atomic_write_json,
-                      folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, remove_temporaries, verify_rows,
-                      write_manifest)
+                      folder_is_empty, lock_holder, locked_folder, read_info, read_manifest, reading_folder,
+                      remove_temporaries, verify_rows, write_manifest)
 from .cars.spec import PARTS
 from .recipe import Recipe, identity_diff
 
@@ -257,10 +257,37 @@ def generate(recipe: Recipe, out: Path, count: int, workers: int | str = 1, shar
     if out.exists() and not (out / "dataset.json").exists() and not folder_is_empty(out):
         raise GenerationError(f"--out {out}: folder is not empty and holds no dataset.json; refusing to mix files")
     try:
+        intact = _intact(recipe, out, count, shard_t)
+        if intact is not None:
+            return intact
         with locked_folder(out):
             return _generate_locked(recipe, out, count, workers, shard_t, progress)
     except OSError as exc:  # e.g. the folder cannot be created at all
         raise DatasetError(f"--out {out}: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")) from None
+
+
+def _intact(recipe: Recipe, out: Path, count: int, shard_t: tuple[int, int]) -> dict | None:
+    """The info of a finished set that this command would leave as it is, verified under a reader's
+    lock: rerunning a command on it writes nothing, so a training that reads the set meanwhile (two
+    `reproduce` runs sharing --data) is not refused. None when there is anything to write, repair
+    or refuse: the writer's path does that."""
+    if not (out / "dataset.json").exists():
+        return None
+    with reading_folder(out) as held:
+        if not held:
+            return None
+        info = read_info(out)
+        identity = legacy_recipe(recipe, out).identity()
+        if (identity_diff(info.get("recipe", {}), identity) or tuple(info.get("shard", [0, 1])) != shard_t
+                or info.get("complete") is not True or info.get("count_requested") != count):
+            return None
+        if any(any(d.glob(".*.tmp*")) for d in (out, out / "samples", out / "previews")):
+            return None  # a dead writer's temporaries: the writer's path removes them
+        rows = read_manifest(out / "manifest.jsonl")
+        wanted = {i for i in range(count) if i % shard_t[1] == shard_t[0]}
+        if sorted(r.get("index") for r in rows) != sorted(wanted) or verify_rows(out, rows)[1]:
+            return None
+    return {**info, "_rendered": 0, "_seconds": 0.0}
 
 
 def _unstarted(out: Path) -> None:

@@ -245,6 +245,31 @@ def test_a_corrupted_sample_is_detected_and_redone(tiny_intrinsics, tmp_path):
     assert run_gen("inspect", str(out), "--quiet").returncode == 0
 
 
+def test_rerunning_a_finished_set_writes_nothing_and_lets_a_training_start(tiny_intrinsics, tmp_path):
+    """Two `reproduce` runs sharing --data: the second's check of a finished set must not look like a
+    writer to the first's training. A rerun on a complete, intact set verifies it under a reader's
+    lock and leaves every file as it was; a writer's lock still refuses a training."""
+    import shutil
+
+    from blender_gen.dataset import locked_folder, reading_folder
+    from train.data import check_ready
+
+    out = tmp_path / "copy"
+    shutil.copytree(tiny_intrinsics, out)
+    before = {p.name: (p.read_bytes(), os.stat(p).st_mtime_ns) for p in (out / "dataset.json", out / "manifest.jsonl")}
+    with reading_folder(out) as held:  # another process verifying the same set meanwhile
+        assert held
+        check_ready(out, "--intrinsics")  # a training starts
+        res = run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3")
+    assert "4 samples (0 rendered now" in res.stdout
+    assert {p.name: (p.read_bytes(), os.stat(p).st_mtime_ns) for p in (out / "dataset.json", out / "manifest.jsonl")} == before
+    with locked_folder(out):  # a writer: the training is refused and a reader's path steps aside
+        with pytest.raises(ValueError, match="is being written by pid"):
+            check_ready(out, "--intrinsics")
+        with reading_folder(out) as held:
+            assert not held
+
+
 def test_shards_with_workers_merge_into_the_single_run(tiny_intrinsics, tmp_path):
     shards = []
     for i in range(2):
