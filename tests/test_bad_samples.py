@@ -81,3 +81,26 @@ def test_decompose_skips_a_bomb_image_and_writes_the_others_whole(tmp_path, trai
     n = len(list(clean.iterdir()))
     assert info["complete"] and info["count"] == n and info["skipped"][0]["file"].endswith("zz_bomb.png")
     assert not list((out / "photos").glob("zz_bomb*"))
+
+
+def test_training_skips_unreadable_photos_and_names_them(tmp_path, trained):
+    """A photo folder with a file that is no image and a JPEG cut short: the training names both,
+    uses the others and finishes (one corrupt photo among thousands must not stop a run)."""
+    import io
+
+    from PIL import Image
+
+    run, intr, clean = trained
+    photos = shutil.copytree(clean, tmp_path / "photos")
+    (photos / "not_a_photo.jpg").write_bytes(b"\xff\xd8 not a jpeg")
+    buf = io.BytesIO()
+    noise = np.random.default_rng(0).integers(0, 256, (200, 300, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(buf, "JPEG")  # its header reads, its pixels end half-way
+    (photos / "cut_short.jpg").write_bytes(buf.getvalue()[: len(buf.getvalue()) // 2])
+    res = _train("fit", "--run-dir", str(tmp_path / "run"), "--config", "cpu-small", "--intrinsics", str(intr),
+                 "--real", str(photos), "--max-steps", "2", "--quiet", *TINY)  # the cache reads every photo
+    assert res.returncode == 0, res.stderr
+    assert "--real: skipped 1 photo(s) that could not be read" in res.stderr and "not_a_photo.jpg" in res.stderr
+    assert f"using the other {len(list(clean.iterdir())) + 1}" in res.stderr
+    assert "cut_short.jpg: cannot read image" in res.stderr and "another photo takes its place" in res.stderr
+    assert "Traceback" not in res.stderr

@@ -7,6 +7,7 @@ resumed run reads exactly the batches an uninterrupted one would.
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Iterator
 
@@ -193,6 +194,29 @@ def photo_to_srgb01(img: Image.Image) -> np.ndarray:
     return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1).astype(np.float32)
 
 
+def readable_photos(files: list[Path]) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """(photos whose header Pillow reads, [(photo, why) for the others]): a fast check (no decoding)
+    that catches files that are not images, of an unknown format or decompression bombs."""
+    good, bad = [], []
+    for path in files:
+        try:
+            with Image.open(path):
+                good.append(path)
+        except (OSError, Image.DecompressionBombError, ValueError) as exc:
+            bad.append((path, f"{path}: cannot read image ({exc})"))
+    return good, bad
+
+
+def skipped_photos_note(reals: "RealImages", option: str) -> str | None:
+    """One line naming the photos a folder's reader left out, or None."""
+    bad = getattr(reals, "unreadable", [])
+    if not bad:
+        return None
+    more = ", ".join(p.name for p, _ in bad[1:4]) + (" ..." if len(bad) > 4 else "")
+    return (f"{option}: skipped {len(bad)} photo(s) that could not be read ({bad[0][1]}"
+            + (f"; also {more}" if more else "") + f"); using the other {len(reals)}")
+
+
 def read_photo(path: Path) -> np.ndarray:
     """A photo as HxWx3 sRGB in [0, 1], upright as its EXIF orientation says (a phone stores a
     portrait shot as landscape pixels plus that tag); a one-line DatasetError names an unreadable
@@ -216,18 +240,25 @@ class RealImages(Dataset):
         root = Path(root)
         self.h, self.w = height, width
         self.ds = None
+        self.unreadable: list[tuple[Path, str]] = []
         if (root / "dataset.json").exists():
             self.ds = open_dataset(root, kinds=("pbr",))
             self.files: list[Path] = []
             n = len(self.ds)
         elif root.is_dir():
-            self.files = image_files(root)
+            # a photo whose header cannot be read is left out here, named in `unreadable`, so one
+            # corrupt file neither stops a training nor shifts which photo an index means mid-run
+            self.files, self.unreadable = readable_photos(image_files(root))
             n = len(self.files)
+            if n == 0 and self.unreadable:
+                path, why = self.unreadable[0]
+                raise DatasetError(f"{root}: none of its {len(self.unreadable)} photo(s) could be read ({why})")
         else:
             raise DatasetError(f"{root}: no such folder of images or PBR dataset")
         if n == 0:
             raise DatasetError(f"{root}: no images found (expected a PBR dataset or {PHOTO_KINDS} photos)"
                                + unread_photos_hint(root))
+        self._failed: set[int] = set()
 
     def __len__(self) -> int:
         return len(self.ds) if self.ds is not None else len(self.files)
@@ -238,6 +269,20 @@ class RealImages(Dataset):
     def load_photo(self, path: Path) -> np.ndarray:
         return read_photo(path) * 2.0 - 1.0  # photos are already sRGB-encoded
 
+    def _load_readable(self, index: int) -> np.ndarray:
+        """Photo `index`, or where it fails to decode (a truncated file whose header reads), the next
+        one that does: the same substitute every time, named once on stderr."""
+        for k in range(len(self.files)):
+            i = (index + k) % len(self.files)
+            if i in self._failed:
+                continue
+            try:
+                return self.load_photo(self.files[i])
+            except DatasetError as exc:
+                self._failed.add(i)
+                print(f"skipped: {exc}; another photo takes its place", file=sys.stderr)
+        raise DatasetError(f"{self.files[index].parent}: none of its photos could be decoded")
+
     def __getitem__(self, item: tuple[int, bool]) -> torch.Tensor:
         index, flip = item
         if self.ds is not None:
@@ -246,7 +291,7 @@ class RealImages(Dataset):
                 raise DatasetError(f"{self.ds.path(index)}: layer 'rgb' holds NaN or infinite values")
             arr = to_network("rgb", rgb)
         else:
-            arr = self.load_photo(self.files[index])
+            arr = self._load_readable(index)
         t = cover_crop(torch.from_numpy(arr).permute(2, 0, 1).contiguous(), self.h, self.w)
         return torch.flip(t, dims=[-1]) if flip else t
 

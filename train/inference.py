@@ -163,7 +163,12 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
 
     gallery = out / "photos"
     gallery.mkdir()
-    done, skipped = [], []
+    done = []
+    # photos whose header could not be read (RealImages left them out), up to the last one used
+    skipped = [{"file": str(p), "reason": why} for p, why in reals.unreadable
+               if n == len(reals.files) or p < reals.files[n]]
+    for s in skipped:
+        tqdm.write(f"skipped: {s['reason']}", file=sys.stderr)
     names = photo_names(reals.files[:n], Path(images))
     for i in tqdm(range(n), desc="decompose", unit="photo", disable=not progress):
         path = reals.files[i]
@@ -189,9 +194,10 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
         writer.add(i, layers, source=reals.source_name(i), photo=name)
         done.append((name, str(Path(path).relative_to(images) if Path(images).is_dir() else Path(path).name)))
     if not done:  # nothing to show: no folder that looks like a result
-        raise DatasetError(f"--images {images}: none of its {n} photo(s) could be read ({skipped[0]['reason']})")
+        raise DatasetError(f"--images {images}: none of its {len(skipped)} photo(s) could be read "
+                           f"({skipped[0]['reason']})")
     write_gallery(gallery, done, f"H's decompositions of {Path(images).name}")
-    writer.info.update(skipped=skipped, count_requested=n - len(skipped))
+    writer.info.update(skipped=skipped, count_requested=len(done))
     writer.finish()
     if skipped:
         raise PhotosSkipped(out, skipped, len(done))

@@ -27,7 +27,7 @@ from .checkpoint import (CheckpointError, latest_checkpoint, load_ema, load_newe
                          save_checkpoint)
 from .config import Config, ConfigError, config_from_dict, differing_sections, unread_sections
 from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache_bytes, check_ready, infinite_loader,
-                   set_identity)
+                   set_identity, skipped_photos_note)
 from .model import build_model
 from .model_card import write_model_card
 from .probe import EMA_PREFIX, evaluate_probe, pixel_prior, probe_plot
@@ -487,6 +487,8 @@ def _fit(run_dir: Path, cfg: Config | None, intrinsics: str | None, real: str | 
     paired = getattr(model, "paired", False)  # the oracle: M_s are the intrinsics of the real (PBR) images
     intr = IntrinsicsData(Path(opts["real" if paired else "intrinsics"]), h, w)
     reals = RealImages(Path(opts["real"]), h, w)
+    if dd.main and (note := skipped_photos_note(reals, "--real")):
+        tqdm.write(note, file=sys.stderr)
     bs = cfg.data.batch_size
     s_m = StepSampler(len(intr), bs, cfg.run.seed, 1 if paired else 0, start, dd.rank, dd.world, cfg.data.hflip)
     s_i = StepSampler(len(reals), bs, cfg.run.seed, 1, start, dd.rank, dd.world, cfg.data.hflip)
