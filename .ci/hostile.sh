@@ -159,6 +159,17 @@ case_ "10 check-export on edited metadata" "1|2" "height|metadata|expected" -- \
 case_ "10 decompress-bomb PNG in decompose" "1|2" "pixels|large|bomb" -- \
   iae-train decompose --run "$W/run" --images "$W/bomb.png" --out "$W/dec"
 check "10 ... and no half-written --out" test ! -e "$W/dec/bomb.png"
+mkdir -p "$W/shots" && "$PY" -c "from PIL import Image; Image.new('RGB', (300, 200), (90, 60, 30)).save('$W/shots/my_car.jpg')"
+printf 'not a jpeg' > "$W/shots/broken.jpg"
+case_ "10 decompose --size 0" "1|2" "--size '0': expected photo, a longer side" -- \
+  iae-train decompose --run "$W/run" --images "$W/shots" --out "$W/dec_s" --size 0
+case_ "10 a broken photo is skipped, named, exit 0" 0 "skipped: .*broken.jpg" -- \
+  iae-train decompose --run "$W/run" --images "$W/shots" --out "$W/dec_b" --quiet
+case_ "10 ... and exit 1 with --strict" 1 "broken.jpg" -- \
+  iae-train decompose --run "$W/run" --images "$W/shots" --out "$W/dec_c" --quiet --strict
+check "10 ... my_car's maps at 300x200, EXR beside" "$PY" -c "
+from PIL import Image; import sys
+sys.exit(Image.open('$W/dec_b/photos/my_car_albedo.png').size != (300, 200) or not __import__('os').path.exists('$W/dec_b/photos/my_car.exr'))"
 case_ "10 flicker on a PBR set that is not a camera path" 1 "not a camera path" -- \
   iae-eval flicker --run "$W/run" --path "$W/pbr"
 
