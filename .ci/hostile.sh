@@ -136,7 +136,7 @@ set -m  # job control: a background job that ignores SIGINT would not be what a 
 # the Ctrl-C a terminal sends reaches a program whose SIGINT is not ignored: a script started in the
 # background (nohup ... &) inherits an ignored SIGINT, so restore the default before the command
 "$PY" -c 'import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execvp(sys.argv[1], sys.argv[1:])' \
-  iae-gen turntable --out "$W/ttp" --car sedan_a --frames 6 --resolution 128x64 --radius 7 --pbr --samples 64 --quiet >"$W/ctrlc.txt" 2>&1 &
+  iae-gen turntable --out "$W/ttp" --car sedan_a --frames 60 --resolution 128x64 --radius 7 --pbr --samples 64 --quiet >"$W/ctrlc.txt" 2>&1 &
 pid=$!; sleep 12; kill -INT $pid; wait $pid; rc=$?
 set +m
 check "9 exit status $rc after one SIGINT, no traceback" sh -c "[ $rc = 130 ] && ! grep -q Traceback '$W/ctrlc.txt'"
