@@ -153,8 +153,13 @@ def test_workers_die_with_their_parent(tmp_path):
             if manifest.exists() and len(manifest.read_text().splitlines()) >= 2:
                 break
             time.sleep(0.2)
-        workers = {p for p in _descendants(proc.pid) if _is_worker(p)}
+        # the pool's processes are the generator's own children; a process a worker forks shows the
+        # worker's command line until it execs, so deeper descendants are not counted as workers
+        children = {int(k) for t in Path(f"/proc/{proc.pid}/task").glob("*")
+                    for k in (t / "children").read_text().split()}
+        workers = {p for p in children if _is_worker(p)}
         assert len(workers) == 2, "the two Blender workers should be running"
+        workers |= {p for p in _descendants(proc.pid) if _is_worker(p)}  # and whatever they started must die too
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         deadline = time.time() + 10
