@@ -112,17 +112,22 @@ def test_ranges_are_checked_where_options_are_declared(tmp_path, args, message):
     assert not (tmp_path / "x").exists()
 
 
+def _children(pid: int) -> set[int]:
+    kids = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            kids.update(int(k) for k in (task / "children").read_text().split())
+        except OSError:
+            continue
+    return kids
+
+
 def _descendants(pid: int) -> set[int]:
     out, todo = set(), [pid]
     while todo:
-        p = todo.pop()
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                kids = [int(k) for k in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            out.update(kids)
-            todo += kids
+        kids = _children(todo.pop())
+        out.update(kids)
+        todo += kids
     return out
 
 
@@ -155,9 +160,7 @@ def test_workers_die_with_their_parent(tmp_path):
             time.sleep(0.2)
         # the pool's processes are the generator's own children; a process a worker forks shows the
         # worker's command line until it execs, so deeper descendants are not counted as workers
-        children = {int(k) for t in Path(f"/proc/{proc.pid}/task").glob("*")
-                    for k in (t / "children").read_text().split()}
-        workers = {p for p in children if _is_worker(p)}
+        workers = {p for p in _children(proc.pid) if _is_worker(p)}
         assert len(workers) == 2, "the two Blender workers should be running"
         workers |= {p for p in _descendants(proc.pid) if _is_worker(p)}  # and whatever they started must die too
         proc.send_signal(signal.SIGKILL)

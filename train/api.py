@@ -25,7 +25,7 @@ from blender_gen.dataset import INTRINSIC_LAYERS
 from .config import Config
 from .data import photo_to_srgb01, resize
 from .inference import load_run_checkpoint
-from .photos import network_size
+from .photos import at_network_size
 
 __all__ = ["IntrinsicRun", "load_run"]
 
@@ -61,10 +61,9 @@ class IntrinsicRun:
 
         `image`: an (H, W, 3) array, sRGB as photos are: uint8 (0-255), uint16 (0-65535) or float
         (0-1); (H, W) grey and (H, W, 4) with alpha are accepted too; or a PIL image."""
-        photo = torch.from_numpy(as_srgb01(image)).permute(2, 0, 1).float() * 2.0 - 1.0
-        maps = self._h(photo)
-        h, w = _out_size(photo.shape[-2:], size)
-        arr = resize(maps, h, w).permute(1, 2, 0).cpu().numpy()
+        photo, img = self._input(image)
+        maps = self.model.decompose(img)[0].float().cpu()
+        arr = resize(maps, *_out_size(photo.shape[-2:], size)).permute(1, 2, 0).numpy()
         return {k: from_network(k, arr[..., 3 * j:3 * j + 3]) for j, k in enumerate(INTRINSIC_LAYERS)}
 
     @torch.no_grad()
@@ -77,26 +76,23 @@ class IntrinsicRun:
         that order. `seed` draws the style code of a model that has one (MUNIT)."""
         stack = _intrinsics_stack(intrinsics)
         m = torch.from_numpy(stack).permute(2, 0, 1).float()
-        hn, wn = network_size(*m.shape[-2:], self.config.data.height, self.config.data.width)
-        img = self.model.render(resize(m, hn, wn)[None].to(self.device),
-                                generator=torch.Generator().manual_seed(seed))[0].float().cpu()
+        small = at_network_size(m, self.config.data.height, self.config.data.width).to(self.device)
+        img = self.model.render(small, generator=torch.Generator().manual_seed(seed))[0].float().cpu()
         return _srgb01(resize(img, *_out_size(m.shape[-2:], size)))
 
     @torch.no_grad()
     def reconstruct(self, image: Any, size: tuple[int, int] | None = None) -> np.ndarray:
         """R(H(image)) as the decomposition cycle makes it (lit as the image is, where R fits a
         lighting per image): (H, W, 3) float32 sRGB in [0, 1]; `image` as for `decompose`."""
-        photo = torch.from_numpy(as_srgb01(image)).permute(2, 0, 1).float() * 2.0 - 1.0
-        hn, wn = network_size(*photo.shape[-2:], self.config.data.height, self.config.data.width)
-        img = resize(photo, hn, wn)[None].to(self.device)
+        photo, img = self._input(image)
         maps = self.model.decompose(img).float()
         again = self.model.reconstruct(img, maps) if hasattr(self.model, "reconstruct") else self.model.render(maps)
         return _srgb01(resize(again[0].float().cpu(), *_out_size(photo.shape[-2:], size)))
 
-    def _h(self, photo: torch.Tensor) -> torch.Tensor:
-        """H on a (3, H, W) network-space picture at about its training pixel count -> (9, h, w)."""
-        hn, wn = network_size(*photo.shape[-2:], self.config.data.height, self.config.data.width)
-        return self.model.decompose(resize(photo, hn, wn)[None].to(self.device))[0].float().cpu()
+    def _input(self, image: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the picture as (3, H, W) network space, the same at about H's training pixel count on the device)."""
+        photo = torch.from_numpy(as_srgb01(image)).permute(2, 0, 1) * 2.0 - 1.0
+        return photo, at_network_size(photo, self.config.data.height, self.config.data.width).to(self.device)
 
 
 def as_srgb01(image: Any) -> np.ndarray:

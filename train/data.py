@@ -209,7 +209,7 @@ def readable_photos(files: list[Path]) -> tuple[list[Path], list[tuple[Path, str
 
 def skipped_photos_note(reals: "RealImages", option: str) -> str | None:
     """One line naming the photos a folder's reader left out, or None."""
-    bad = getattr(reals, "unreadable", [])
+    bad = reals.unreadable
     if not bad:
         return None
     more = ", ".join(p.name for p, _ in bad[1:4]) + (" ..." if len(bad) > 4 else "")

@@ -159,7 +159,7 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
     and the scorer read); photos/ holds the maps at the photo's size, named after it, and a
     labelled panel per photo. An unreadable photo is skipped and named; the others go on."""
     from .data import cover_crop, resize
-    from .photos import network_size, output_size, photo_names, write_gallery, write_photo_outputs
+    from .photos import at_network_size, output_size, photo_names, write_gallery, write_photo_outputs
 
     gallery = out / "photos"
     gallery.mkdir()
@@ -178,8 +178,7 @@ def _decompose_photos(out: Path, writer: DatasetWriter, images: Path, cfg, model
             skipped.append({"file": str(path), "reason": str(exc)})
             tqdm.write(f"skipped: {exc}", file=sys.stderr)
             continue
-        hn, wn = network_size(*photo.shape[-2:], cfg.data.height, cfg.data.width)
-        img = resize(photo, hn, wn)[None].to(device)
+        img = at_network_size(photo, cfg.data.height, cfg.data.width).to(device)
         maps = model.decompose(img).float()
         rerender = model.reconstruct(img, maps) if hasattr(model, "reconstruct") else model.render(maps)
         name = names[i]

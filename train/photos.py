@@ -37,6 +37,11 @@ def network_size(h: int, w: int, train_h: int, train_w: int) -> tuple[int, int]:
             max(SIDE_MULTIPLE, round(w * scale / SIDE_MULTIPLE) * SIDE_MULTIPLE))
 
 
+def at_network_size(t: torch.Tensor, train_h: int, train_w: int) -> torch.Tensor:
+    """(C, H, W) -> (1, C, h, w) at `network_size`: how H and R see a photo or a map of any size."""
+    return resize(t, *network_size(*t.shape[-2:], train_h, train_w))[None]
+
+
 def output_size(h: int, w: int, size: int | tuple[int, int] | None = None) -> tuple[int, int]:
     """(height, width) of a photo's maps: its own size (at most MAX_SIDE a side) by default; `size`
     an int: that longer side, aspect kept; a (width, height) pair: exactly that."""
