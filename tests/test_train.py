@@ -291,7 +291,7 @@ def test_render_and_decompose_commands(data, tmp_path):
     (shots / "IMG_0001.HEIC").write_bytes(b"\0" * 64)  # not read here: named, not silently dropped
     res = _run("decompose", "--run", str(run), "--images", str(shots), "--out", str(tmp_path / "p"), "--quiet",
                check=False)
-    assert res.returncode == 0 and "skipped: 1 photo(s) could not be read and were skipped (broken.jpg)" in res.stderr
+    assert res.returncode == 0 and "warning: 1 photo(s) could not be read and were skipped (broken.jpg)" in res.stderr
     assert "Traceback" not in res.stderr
     assert "1 photo(s) in formats not read here (.heic; first IMG_0001.HEIC) are left out" in res.stderr
     gallery = tmp_path / "p" / "photos"

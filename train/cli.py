@@ -187,7 +187,7 @@ def decompose(run_dir, images, out, limit, size, strict, device, quiet) -> None:
         except PhotosSkipped as exc:
             if strict:
                 raise
-            click.echo(f"skipped: {exc}", err=True)
+            click.echo(f"warning: {exc}", err=True)
             path = exc.out
     gallery = path / "photos" / "index.html"
     click.echo(f"{path}: predictions written" + (f"; open {gallery}" if gallery.exists() else ""))
