@@ -24,10 +24,10 @@ DEMO := $(OUT)/demo
 DEMO_STEPS ?= 300
 # what the demo's report shows beside its own short run: a trained model (committed with its figures)
 DEMO_REFERENCE := A trained model, for comparison with this demo's $(DEMO_STEPS)-step run above: H of the full \
-model at the cpu budget (make reproduce BUDGET=cpu; its 5000 steps at 64x128 took about 105 min on a 2-core CPU), seed 21, \
+model at the cpu budget (make reproduce BUDGET=cpu; its 5000 steps at 64x128 took about 113 min on a 2-core CPU beside another training), seed 21, \
 moving-average weights, on four Table-3 images of that comparison. For each: the image, then normal, albedo and \
 reflection rows with the ground truth, H's map, the constant predictor and the per-pixel prior \
-(results/cpu_gain_floor/decomposition_grid_gain_floor_s21.jpg; figures in README.md, Results at a glance).
+(results/h_upsample/decomposition_grid_subpixel_s21.jpg; figures in README.md, Results at a glance).
 
 # The whole pipeline on built-in defaults, small, with the paper's protocol: synthetic
 # intrinsics of the training cars (M_s), the "real" stand-in (held-out cars under held-out
@@ -46,7 +46,7 @@ demo: $(STAMP)
 		--probe $(DEMO)/pbr_eval --run-dir $(DEMO)/run --max-steps $(DEMO_STEPS) --set run.probe_every=50
 	$(VENV)/bin/iae-eval report $(DEMO)/run --data $(DEMO)/pbr_eval --real $(DEMO)/pbr_real \
 		--intrinsics $(DEMO)/intrinsics_unseen --out $(DEMO)/report --quiet \
-		--reference results/cpu_gain_floor/decomposition_grid_gain_floor_s21.jpg --reference-caption "$(DEMO_REFERENCE)"
+		--reference results/h_upsample/decomposition_grid_subpixel_s21.jpg --reference-caption "$(DEMO_REFERENCE)"
 	@echo "demo done: open $(DEMO)/report/report.html ($(DEMO)/contact_sheet.png, $(DEMO)/intrinsics_grid.png)"
 	@echo "The demo's $(DEMO_STEPS)-step run checks the pipeline; it is not a trained model. What trained runs produce,"
 	@echo "with the commands that made them: README.md 'Results at a glance' and docs/experiment_log.md."

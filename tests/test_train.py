@@ -86,6 +86,8 @@ def test_resize_and_subpixel_upsampling_start_without_checkerboard_and_older_run
     old = Config().to_dict()
     del old["model"]["h_upsample"]
     assert config_from_dict(old).model.h_upsample == "transposed"  # what every run before the option had
+    # the default is subpixel; the paper preset keeps the paper's (CycleGAN's) transposed layers
+    assert Config().model.h_upsample == "subpixel" and load_config("paper").model.h_upsample == "transposed"
     with pytest.raises(ConfigError, match="model.h_upsample"):
         validate(tiny_cfg(model__h_upsample="bilinear"))
 

@@ -49,12 +49,11 @@ class ModelConfig:
     # How H's decoders double the resolution: "transposed" (the paper's pix2pixHD/CycleGAN layers),
     # "resize" (nearest-neighbour upsampling + 3x3 convolution, free of the transposed layers'
     # checkerboard) or "subpixel" (a convolution to four phases + pixel shuffle, ICNR-initialised).
-    # Measured at the cpu budget (seeds 21, 22) against transposed: resize takes the lattice peaks of
-    # H's maps from 2.1-3.2 to 1.0-1.4 (truth 1.0-1.1), normals level, albedo 1.2 / 1.9 and reflection
-    # 1.8 / 1.6 worse; subpixel has normals 1.0 / 1.2 deg better (0.6-1.4 on S0/S1, 3 seeds), peaks
-    # 1.7-2.6, reflection level, albedo 1.0 / 0.5 worse. The committed comparison was trained with transposed, which stays the
-    # default until it is rerun (docs/normals_from_shading.md, "H's upsampling").
-    h_upsample: str = "transposed"
+    # Measured at the cpu budget against transposed: subpixel's normals 1.0 / 1.2 / 1.5 deg better on
+    # seeds 21-23 (0.6-1.4 on S0/S1, 3 seeds each), lattice peaks 1.6-2.6 against 2.1-3.5, colour maps
+    # within the seed spread; resize takes the peaks to 1.0-1.4 (truth 1.0-1.1) with normals level and
+    # albedo and reflection 1.2-1.9 worse (docs/normals_from_shading.md, "H's upsampling").
+    h_upsample: str = "subpixel"
     # Not in the paper: "net" = R is the pix2pixHD generator alone (the paper); "shader" = R is a
     # deferred shader, lin(A) x SH(N; learned lighting) + gain x lin(F) (train.shading), plus the
     # same generator as a residual of amplitude shader_residual (network units; 0 = shader only) on
