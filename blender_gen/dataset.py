@@ -424,8 +424,28 @@ def _try_lock(fd: int, mode: int) -> str | None:
     except OSError as exc:
         if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
             raise
+        if mode == fcntl.LOCK_EX and _readers_only(fd):
+            return READERS  # the file's line is the last writer's, long gone: do not name it
         return os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
     return None
+
+
+# What `_try_lock` reports when only readers (processes verifying the set) hold the folder.
+READERS = "another process (checking its samples)"
+
+
+def _readers_only(fd: int) -> bool:
+    """True when a shared lock can be taken on `fd` now, i.e. no writer holds the folder."""
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+            raise
+        return False
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    return True
 
 
 @contextmanager
@@ -450,8 +470,9 @@ def locked_folder(root: Path, option: str = "--out", wait: Callable[[str], None]
                 wait(holder)
                 fcntl.flock(fd, fcntl.LOCK_EX)
             else:
-                raise DatasetError(f"{option} {root} is being written by {holder}; wait for it to finish or "
-                                   "choose another folder")
+                verb = "read" if holder == READERS else "written"
+                raise DatasetError(f"{option} {root} is being {verb} by {holder}; "
+                                   "wait for it to finish or choose another folder")
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since "
                       f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode(), 0)

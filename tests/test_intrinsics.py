@@ -260,6 +260,9 @@ def test_rerunning_a_finished_set_writes_nothing_and_lets_a_training_start(tiny_
     with reading_folder(out) as held:  # another process verifying the same set meanwhile
         assert held
         check_ready(out, "--intrinsics")  # a training starts
+        with pytest.raises(ValueError, match=r"--out .* is being read by another process \(checking its samples\)"):
+            with locked_folder(out):  # a writer is refused, and not in the name of the set's last writer
+                pass
         res = run_gen("intrinsics", "--out", str(out), "--count", "4", "--resolution", "64x32", "--seed", "3")
     assert "4 samples (0 rendered now" in res.stdout
     assert {p.name: (p.read_bytes(), os.stat(p).st_mtime_ns) for p in (out / "dataset.json", out / "manifest.jsonl")} == before
