@@ -62,7 +62,7 @@ def check_envmap(path: str) -> str:
     return str(p.resolve())
 
 
-def _expand_cars(chunk: str) -> list[str]:
+def _expand_cars(chunk: str, option: str = "--cars") -> list[str]:
     """One --cars argument as car tokens: a folder gives every model file under it, a glob pattern
     its matches, and a name that is an existing file is taken whole (even with ',' or '+' in it);
     otherwise comma-separated tokens (catalogue names, FILE or BODY+WHEELS files)."""
@@ -73,37 +73,39 @@ def _expand_cars(chunk: str) -> list[str]:
     if path.is_dir():
         files = sorted(str(f) for f in path.rglob("*") if f.is_file() and f.suffix.lower() in MODEL_SUFFIXES)
         if not files:
-            _fail(f"--cars {chunk}: a folder without model files ({', '.join(MODEL_SUFFIXES)})")
+            _fail(f"{option} {chunk}: a folder without model files ({', '.join(MODEL_SUFFIXES)})")
         return files
     if path.is_file():
         return [chunk]
     if any(c in chunk for c in "*?["):
         files = sorted(f for f in glob.glob(chunk, recursive=True) if Path(f).suffix.lower() in MODEL_SUFFIXES)
         if not files:
-            _fail(f"--cars {chunk}: the pattern matches no model file ({', '.join(MODEL_SUFFIXES)})")
+            _fail(f"{option} {chunk}: the pattern matches no model file ({', '.join(MODEL_SUFFIXES)})")
         return files
     return [t.strip() for t in chunk.split(",")]
 
 
-def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
+def check_cars(tokens: tuple[str, ...], rules: str | None, option: str = "--cars") -> tuple[str, ...]:
+    """The car tokens of `option`'s arguments, each checked: model files exist and have rules,
+    catalogue names select cars; a bad one exits with a one-line error naming `option`."""
     from .cars import load_catalogue, select_cars
 
     out, names = [], []
-    for token in (t for chunk in tokens for t in _expand_cars(chunk)):
+    for token in (t for chunk in tokens for t in _expand_cars(chunk, option)):
         if not token:
             continue
         if Path(token).suffix.lower() in MODEL_SUFFIXES or "/" in token:
             # one car in several files: BODY+WHEELS (a file whose own name holds '+' is taken whole)
             files = split_car(token)
             if len({p.resolve() for p in files}) < len(files):
-                _fail(f"--cars {token}: a file named twice in one car (its faces would be doubled)")
+                _fail(f"{option} {token}: a file named twice in one car (its faces would be doubled)")
             for p in files:
                 if not p.is_file():
-                    _fail(f"--cars {token}: no such model file {p}")
+                    _fail(f"{option} {token}: no such model file {p}")
                 if p.suffix.lower() not in MODEL_SUFFIXES:
-                    _fail(f"--cars {token}: unsupported model format {p.suffix!r}; expected one of {MODEL_SUFFIXES}")
+                    _fail(f"{option} {token}: unsupported model format {p.suffix!r}; expected one of {MODEL_SUFFIXES}")
             if rules is None:
-                _fail(f"--cars {token}: a model file needs --car-rules FILE (or --car-rules auto) to map its "
+                _fail(f"{option} {token}: a model file needs --car-rules FILE (or --car-rules auto) to map its "
                       "objects to parts")
             out.append("+".join(str(p.resolve()) for p in files))
         else:
@@ -112,10 +114,11 @@ def check_cars(tokens: tuple[str, ...], rules: str | None) -> tuple[str, ...]:
     if names:
         try:
             select_cars(load_catalogue(), ",".join(names))
-        except ValueError as exc:
-            _fail(str(exc))
+        except ValueError as exc:  # the selectors' messages speak of --cars
+            msg = str(exc)
+            _fail(option + msg.removeprefix("--cars") if msg.startswith("--cars") else msg)
     if not out:
-        _fail("--cars: no car given")
+        _fail(f"{option}: no car given")
     return tuple(out)
 
 
@@ -313,7 +316,7 @@ def turntable(out, car, car_rules, frames, radius, cam_height, focal, start, env
         _fail(f"--paint {paint!r}: no such paint; expected one of {', '.join(paints)}")
     if "," in car:
         _fail(f"--car {car!r}: a turntable shows one car")
-    cars = check_cars((car,), car_rules)
+    cars = check_cars((car,), car_rules, "--car")
     if not Path(cars[0]).suffix:
         from .cars import load_catalogue, select_cars
 

@@ -58,6 +58,8 @@ def test_bad_turntable_options_are_one_line_errors(tmp_path):
     assert bad.returncode and "--paint 'mauve': no such paint; expected one of" in bad.stderr
     bad = run_gen("turntable", "--out", str(tmp_path / "b"), "--car", "sedan", "--frames", "3", "--quiet", check=False)
     assert bad.returncode and "selects" in bad.stderr and "name one" in bad.stderr
+    bad = run_gen("turntable", "--out", str(tmp_path / "d"), "--car", "nocar", "--frames", "3", "--quiet", check=False)
+    assert bad.returncode and "--car: 'nocar' is neither a catalogue model" in bad.stderr  # the option it was given
     bad = run_gen("turntable", "--out", str(tmp_path / "c"), "--car", "sedan_a", "--frames", "3", "--radius", "2.5",
                   "--focal", "80", "--resolution", "64x32", "--quiet", check=False)
     assert bad.returncode and "does not fit" in bad.stderr and "--radius 2.5" in bad.stderr
