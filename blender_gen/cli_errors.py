@@ -38,4 +38,22 @@ def one_line_errors(expected: tuple[type[BaseException], ...] = EXPECTED) -> Ite
     except expected as exc:
         if os.environ.get(DEBUG_ENV):
             raise
-        raise click.ClickException(first_line(exc)) from None
+        raise click.ClickException(with_option(first_line(exc))) from None
+
+
+def with_option(line: str) -> str:
+    """Put the option in front of a message about one of its files ("PATH: ..." becomes
+    "--run PATH: ..."): the libraries below the command line know the path, not the option."""
+    import click
+
+    ctx = click.get_current_context(silent=True)
+    if ctx is None or line.startswith("-"):
+        return line
+    for param in ctx.command.params:
+        if not isinstance(param, click.Option) or not param.opts[0].startswith("--"):
+            continue
+        values = ctx.params.get(param.name)
+        for value in values if isinstance(values, (tuple, list)) else (values,):
+            if isinstance(value, (str, os.PathLike)) and str(value) and line.startswith(f"{value}:"):
+                return f"{param.opts[0]} {line}"
+    return line

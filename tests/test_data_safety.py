@@ -349,3 +349,34 @@ def test_one_line_errors_do_not_repeat_clicks_error_prefix():
     assert first_line(ValueError("error:  Error: bad")) == "bad"
     assert first_line(ValueError("Error:")) == "ValueError"
     assert first_line(ValueError("no error: here")) == "no error: here"
+
+
+def test_a_message_about_an_options_file_names_the_option(tmp_path):
+    """The libraries know a path, the command line knows which option gave it: "--run PATH: ...".
+    A path given as an argument, or a message that already names its option, stays as it is."""
+    import click
+    from click.testing import CliRunner
+
+    from blender_gen.cli_errors import one_line_errors
+
+    @click.command()
+    @click.argument("folder")
+    @click.option("--run")
+    @click.option("--images", multiple=True)
+    @click.option("--message")
+    def cmd(folder, run, images, message):
+        with one_line_errors():
+            raise ValueError(message)
+
+    def err(*args: str) -> str:
+        res = CliRunner().invoke(cmd, list(args))
+        assert res.exit_code == 1
+        return res.output.strip().splitlines()[-1]
+
+    run, other = str(tmp_path / "run"), str(tmp_path / "b")
+    assert err("x", "--run", run, "--message", f"{run}: not a run folder") == f"Error: --run {run}: not a run folder"
+    assert err("x", "--images", "a", "--images", other, "--message", f"{other}: unreadable") == \
+        f"Error: --images {other}: unreadable"
+    assert err(run, "--message", f"{run}: no such dataset directory") == f"Error: {run}: no such dataset directory"
+    assert err("x", "--run", run, "--message", f"--run {run}: refused") == f"Error: --run {run}: refused"
+    assert err("x", "--run", run, "--message", f"{run}x: other") == f"Error: {run}x: other"

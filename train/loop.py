@@ -11,7 +11,7 @@ import math
 import os
 import sys
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -21,8 +21,8 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-from blender_gen.dataset import (LOCK_NAME, DatasetError, atomic_write_json, folder_is_empty, locked_folder,
-                                 remove_temporaries, save_png, write_json_lines)
+from blender_gen.dataset import (LOCK_NAME, atomic_write_json, folder_is_empty, locked_folder, remove_temporaries,
+                                 save_png, write_json_lines)
 from .checkpoint import (CheckpointError, latest_checkpoint, load_ema, load_newest, load_weights, newest_state,
                          save_checkpoint)
 from .config import Config, ConfigError, config_from_dict, differing_sections, unread_sections
@@ -286,25 +286,13 @@ def _newest_step(run: RunFolder) -> int | None:
     return None if newest is None else newest[1]
 
 
-@contextmanager
-def _naming(option: str):
-    """Put the option in front of a dataset error about its folder ("--real PATH: ...")."""
-    try:
-        yield
-    except DatasetError as exc:
-        msg = str(exc)
-        raise DatasetError(msg if msg.startswith("--") else f"{option} {msg}") from None
-
-
 def check_data(cfg: Config, intrinsics: str, real: str) -> None:
     """Open both datasets (DatasetError names the one that is missing, malformed, being written
     or incomplete)."""
     check_ready(Path(intrinsics), "--intrinsics")
     check_ready(Path(real), "--real")
-    with _naming("--intrinsics"):
-        IntrinsicsData(Path(intrinsics), cfg.data.height, cfg.data.width)
-    with _naming("--real"):
-        reals = RealImages(Path(real), cfg.data.height, cfg.data.width)
+    IntrinsicsData(Path(intrinsics), cfg.data.height, cfg.data.width)
+    reals = RealImages(Path(real), cfg.data.height, cfg.data.width)
     if cfg.model.kind == "oracle" and reals.ds is None:
         raise ConfigError(f"--real {real}: the supervised oracle needs a PBR dataset (images with their intrinsics)")
 
