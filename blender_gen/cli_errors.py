@@ -50,10 +50,11 @@ def with_option(line: str) -> str:
     if ctx is None or line.startswith("-"):
         return line
     for param in ctx.command.params:
-        if not isinstance(param, click.Option) or not param.opts[0].startswith("--"):
+        name = next((o for o in param.opts if o.startswith("--")), None) if isinstance(param, click.Option) else None
+        if name is None:
             continue
         values = ctx.params.get(param.name)
         for value in values if isinstance(values, (tuple, list)) else (values,):
             if isinstance(value, (str, os.PathLike)) and str(value) and line.startswith(f"{value}:"):
-                return f"{param.opts[0]} {line}"
+                return f"{name} {line}"
     return line

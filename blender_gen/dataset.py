@@ -416,7 +416,7 @@ def lock_holder(root: Path) -> str | None:
 
 def _try_lock(fd: int, mode: int) -> str | None:
     """Take `mode` on the lock file `fd` without waiting: None when taken, else who holds it (the
-    holder's line in the file)."""
+    holder's line in the file, or READERS when only readers hold it)."""
     import fcntl
 
     try:
@@ -424,28 +424,15 @@ def _try_lock(fd: int, mode: int) -> str | None:
     except OSError as exc:
         if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
             raise
-        if mode == fcntl.LOCK_EX and _readers_only(fd):
-            return READERS  # the file's line is the last writer's, long gone: do not name it
+        if mode == fcntl.LOCK_EX and _try_lock(fd, fcntl.LOCK_SH) is None:
+            fcntl.flock(fd, fcntl.LOCK_UN)  # only readers hold it: the line is the last writer's, long gone
+            return READERS
         return os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
     return None
 
 
 # What `_try_lock` reports when only readers (processes verifying the set) hold the folder.
 READERS = "another process (checking its samples)"
-
-
-def _readers_only(fd: int) -> bool:
-    """True when a shared lock can be taken on `fd` now, i.e. no writer holds the folder."""
-    import fcntl
-
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError as exc:
-        if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-            raise
-        return False
-    fcntl.flock(fd, fcntl.LOCK_UN)
-    return True
 
 
 @contextmanager
