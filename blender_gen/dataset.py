@@ -61,17 +61,18 @@ EXTRA_LAYERS = ("depth", "part", "gloss")
 LIGHT_LAYERS = ("rgb_noisy", "diffuse_color", "diffuse_shading", "glossy", "transmission", "emission", "environment")
 KIND_EXTRA_LAYERS = {"intrinsics": EXTRA_LAYERS, "pbr": EXTRA_LAYERS + LIGHT_LAYERS}
 
-
-def recompose(layers: dict) -> np.ndarray:
-    """A PBR sample's image from its light layers; equals `rgb_noisy` on the car (coverage 1)."""
-    return (layers["diffuse_color"] * layers["diffuse_shading"] + layers["glossy"] + layers["transmission"]
-            + layers["emission"] + layers["environment"])
 KIND_LAYERS: dict[str, tuple[str, ...]] = {
     "intrinsics": ("normal", "albedo", "reflection", "mask", "material"),
     "pbr": ("rgb", "normal", "albedo", "reflection", "mask", "material"),
     "predictions": ("normal", "albedo", "reflection"),
 }
 INTRINSIC_LAYERS = ("normal", "albedo", "reflection")  # the 9-channel stack M, in this order
+
+
+def recompose(layers: dict) -> np.ndarray:
+    """A PBR sample's image from its light layers; equals `rgb_noisy` on the car (coverage 1)."""
+    return (layers["diffuse_color"] * layers["diffuse_shading"] + layers["glossy"] + layers["transmission"]
+            + layers["emission"] + layers["environment"])
 
 
 class DatasetError(ValueError):
