@@ -50,6 +50,14 @@ def _line(label: str, f: dict) -> str:
             + f" | {f['r_sensitivity']:.2f} / {f['r_colour_corr']:.2f} |")
 
 
+def legend_label(label: str, degrees: list[float], ylim: tuple[float, float] | None) -> str:
+    """A curve that leaves the plotted range is named with its end, so that it is not lost: an
+    untrained ablation (80-140 deg) would otherwise squeeze the curves that learn into a band."""
+    if ylim is None or all(ylim[0] <= d <= ylim[1] for d in degrees):
+        return label
+    return f"{label} (off the scale: ends at {degrees[-1]:.0f}°)"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", help="LABEL=RUN_DIR or LABEL=ROWS.jsonl")
@@ -59,6 +67,8 @@ def main() -> None:
                     help="write paths under this folder (the reproduce --out) as OUT/... in the copied options")
     ap.add_argument("--until", type=int, default=None, metavar="STEP",
                     help="use the probe rows up to this step only (compare runs at one step)")
+    ap.add_argument("--ylim", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="the curves' vertical range in degrees; a run above it is named in the legend with its end")
     args = ap.parse_args()
     runs = []
     for item in args.runs:
@@ -111,11 +121,14 @@ def main() -> None:
         steps = [r["step"] for r in rows]
         color, style = f"C{k % 10}", ("-", "--", ":")[k // 10 % 3]  # more than ten runs: a line style apart
         ax.plot(steps, [r["probe/normal_deg"] for r in rows], color=color, alpha=0.3, lw=0.8)
-        ax.plot(steps, [judged(r)[0] for r in rows], color=color, ls=style, label=label)
+        judged_deg = [judged(r)[0] for r in rows]
+        ax.plot(steps, judged_deg, color=color, ls=style, label=legend_label(label, judged_deg, args.ylim))
     last = runs[0][2][-1]
     ax.axhline(last["probe/const_normal_deg"], ls="--", color="gray", label="constant predictor")
     if "probe/prior_normal_deg" in last:
         ax.axhline(last["probe/prior_normal_deg"], ls="-.", color="gray", label="per-pixel prior (no image)")
+    if args.ylim is not None:
+        ax.set_ylim(*args.ylim)
     ax.set_xlabel("step")
     ax.set_ylabel("H's mean normal error (deg)")
     ax.set_title(f"{args.title} (solid: moving-average weights; faint: raw)", fontsize=9)

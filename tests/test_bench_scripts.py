@@ -58,7 +58,8 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
     assert "| ref_s21 | 21 | 750 | 36.0 (37.0; 4.5) | 40.0 / 35.0 |" in (out / "table.md").read_text()
     assert (out / "curves.png").stat().st_size > 1000 and not (out / "ref_s21_probe.jsonl").exists()
     # --until: every run read up to one step (a run stopped early beside complete ones)
-    until = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), "--until", "500", f"ref_s21={rows}"],
+    until = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), "--until", "500", "--ylim", "20", "40",
+                            f"ref_s21={rows}"],
                            cwd=ROOT, capture_output=True, text=True, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
     assert until.returncode == 0, until.stderr[-2000:]
     assert "| ref_s21 | 21 | 500 | 38.5 (" in (out / "table.md").read_text()
@@ -74,6 +75,19 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
     bad = subprocess.run([sys.executable, "bench/sanity_ab.py", "--out", str(out), f"x={tmp_path / 'none'}"],
                          cwd=ROOT, capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert bad.returncode != 0 and "expected LABEL=RUN_DIR" in bad.stderr
+
+
+def test_sanity_ab_names_a_curve_that_leaves_the_plotted_range():
+    """With --ylim an untrained ablation's curve leaves the plot; its legend entry says where it ends."""
+    sys.path[:0] = [str(ROOT / "bench")]
+    try:
+        from sanity_ab import legend_label
+    finally:
+        del sys.path[0]
+    assert legend_label("full", [36.0, 25.0], (20.0, 45.0)) == "full"
+    assert legend_label("full", [36.0, 25.0], None) == "full"
+    assert legend_label("no_N", [78.8, 79.2], (20.0, 45.0)) == "no_N (off the scale: ends at 79°)"
+    assert legend_label("no_ren", [60.0, 30.0], (20.0, 45.0)).endswith("ends at 30°)")  # left it, came back
 
 
 def test_lattice_peaks_find_a_checkerboard_and_not_a_smooth_map():
