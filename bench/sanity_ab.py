@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--until", type=int, default=None, metavar="STEP",
                     help="use the probe rows up to this step only (compare runs at one step)")
     ap.add_argument("--ylim", type=float, nargs=2, default=None, metavar=("LO", "HI"),
-                    help="the curves' vertical range in degrees; a run above it is named in the legend with its end")
+                    help="the curves' vertical range in degrees; a run outside it is named in the legend with its end")
     args = ap.parse_args()
     runs = []
     for item in args.runs:
