@@ -21,6 +21,18 @@ if _WORKERS > 1:
     os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(TEST_THREADS)
 
 
+def bench_module(name: str):
+    """A script of bench/ imported as a module (they run as scripts, so bench/ is no package); the
+    search path is restored afterwards, so no test leaves bench/ on it for the others."""
+    import importlib
+
+    sys.path[:0] = [str(ROOT / "bench")]
+    try:
+        return importlib.import_module(name)
+    finally:
+        del sys.path[0]
+
+
 def invoke_here(main, *args, env: dict | None = None) -> subprocess.CompletedProcess:
     """A click command line run in this process, as a CompletedProcess (exit code, stdout, stderr).
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from .conftest import ROOT
+from .conftest import ROOT, bench_module
 
 
 def test_every_bench_script_imports():
@@ -33,17 +33,6 @@ def test_every_sweep_variant_is_a_valid_config():
     cfg = load_config("cpu-small", shading["default"]["set"])
     assert cfg.model.renderer == "net" and cfg.loss.w_dec == 10  # "default" = the previous defaults, pinned
     assert "model.kind=oracle" in shading["oracle"]["set"] and "model.renderer=net" not in shading["oracle"]["set"]
-
-
-def _bench_module(name: str):
-    """A script of bench/ imported as a module (they are run as scripts, so bench/ is no package)."""
-    import importlib
-
-    sys.path[:0] = [str(ROOT / "bench")]
-    try:
-        return importlib.import_module(name)
-    finally:
-        del sys.path[0]
 
 
 def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
@@ -90,7 +79,7 @@ def test_sanity_ab_takes_a_committed_curve_as_a_reference(tmp_path):
 
 def test_sanity_ab_names_a_curve_that_leaves_the_plotted_range():
     """With --ylim an untrained ablation's curve leaves the plot; its legend entry says where it ends."""
-    legend_label = _bench_module("sanity_ab").legend_label
+    legend_label = bench_module("sanity_ab").legend_label
     assert legend_label("full", [36.0, 25.0], (20.0, 45.0)) == "full"
     assert legend_label("full", [36.0, 25.0], None) == "full"
     assert legend_label("no_N", [78.8, 79.2], (20.0, 45.0)) == "no_N (off the scale: ends at 79°)"
@@ -101,7 +90,7 @@ def test_lattice_peaks_find_a_checkerboard_and_not_a_smooth_map():
     """bench/lattice_peaks.py's figure: about 1 on a map without a lattice pattern, far above with one."""
     import torch
 
-    lattice_peak_ratio = _bench_module("lattice_peaks").lattice_peak_ratio
+    lattice_peak_ratio = bench_module("lattice_peaks").lattice_peak_ratio
     torch.manual_seed(0)
     smooth = torch.nn.functional.avg_pool2d(torch.randn(8, 3, 68, 132), 5, stride=1)  # (8, 3, 64, 128)
     yy, xx = torch.meshgrid(torch.arange(64), torch.arange(128), indexing="ij")

@@ -19,6 +19,7 @@ from train.probe import ProbeSet, evaluate_probe, high_frequency, pixel_prior, s
 from train.sanity import shade_network
 from train.shading import fit_shading, render_sh, sh_basis, shading_loss
 
+from .conftest import bench_module
 from .train_helpers import tiny_fit, tiny_intrinsics, tiny_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -513,8 +514,7 @@ def test_a_shared_reflection_gain_leaves_no_room_for_copying_the_image_into_the_
 def test_the_shading_budget_takes_a_cycles_image_apart():
     """bench/shading_budget.py: a diffuse shading that is exactly second-order SH of the normals
     fits to ~0; the layers' shares of the car's luminance add up to the image's."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from shading_budget import budget
+    budget = bench_module("shading_budget").budget
 
     from train.shading import sh_basis
 

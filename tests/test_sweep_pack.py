@@ -4,9 +4,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from .conftest import bench_module
 
-from objective_sweep import jpeg_decode, jpeg_encode, load_packed, unpack  # noqa: E402
+_sweep = bench_module("objective_sweep")
+jpeg_decode, jpeg_encode, load_packed, unpack = _sweep.jpeg_decode, _sweep.jpeg_encode, _sweep.load_packed, _sweep.unpack
 
 
 def test_jpeg_packs_keep_every_map_and_their_order(tmp_path):
