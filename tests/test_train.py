@@ -332,6 +332,13 @@ def test_render_and_decompose_commands(data, tmp_path):
     bad = _run("render", "--run", str(tmp_path / "nothing"), "--intrinsics", str(intr), "--out", str(tmp_path / "y"),
                check=False)
     assert bad.returncode and "not a run folder" in bad.stderr
+    heic = tmp_path / "heic"
+    heic.mkdir()
+    (heic / "IMG_1.HEIC").write_bytes(b"not read here")
+    bad = _run("decompose", "--run", str(tmp_path / "nothing"), "--images", str(heic), "--out", str(tmp_path / "w"),
+               check=False)  # a mistyped run is named before the photos are scanned
+    assert bad.returncode == 1 and bad.stderr.strip().splitlines() == [
+        f"Error: --run {tmp_path / 'nothing'}: not a run folder (no training_options.json)"]
 
 
 def test_config_errors_name_the_key_and_the_nearest_valid_one(data, tmp_path):

@@ -179,8 +179,11 @@ def decompose(run_dir, images, out, limit, size, strict, device, quiet) -> None:
     from .inference import PhotosSkipped, decompose_images
     from .photos import parse_size
 
-    _note_unread_photos(images, "--images")
+    from .run_folder import RunFolder
+
     with one_line_errors():
+        RunFolder(run_dir).options()  # a mistyped --run fails before the photos are scanned
+        _note_unread_photos(images, "--images")
         try:
             path = decompose_images(run_dir, images, out, _device(device), limit=limit, progress=not quiet,
                                     size=parse_size(size))
