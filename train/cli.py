@@ -178,7 +178,6 @@ def decompose(run_dir, images, out, limit, size, strict, device, quiet) -> None:
     resolution for a PBR set, which `iae-eval decomposition` scores)."""
     from .inference import PhotosSkipped, decompose_images
     from .photos import parse_size
-
     from .run_folder import RunFolder
 
     with one_line_errors():
