@@ -560,6 +560,9 @@ def test_set_without_config_and_a_non_empty_out_are_one_line_errors(data, tmp_pa
     noobj = _run("fit", "--run-dir", str(run), "--objective", "paper", check=False)
     assert noobj.returncode == 2 and "--objective needs --config" in noobj.stderr
     intr, photos = data
+    new = _run("fit", "--run-dir", str(tmp_path / "new"), "--intrinsics", str(intr), "--real", str(photos), check=False)
+    assert new.returncode == 1 and "Traceback" not in new.stderr
+    assert "no run there to resume" in new.stderr and "(--config not given)" in new.stderr
     mine = tmp_path / "my_photos"
     mine.mkdir()
     (mine / "holiday.jpg").write_bytes(b"not touched")

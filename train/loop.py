@@ -235,7 +235,9 @@ def prepare_run(run_dir: Path, cfg: Config | None, intrinsics: str | None, real:
         intrinsics, real = intrinsics or opts["intrinsics"], real or opts["real"]
         probe = probe or opts.get("probe")
     if cfg is None or not intrinsics or not real:
-        raise ConfigError(f"--run-dir {run_dir}: no run there to resume; a new run needs --config, --intrinsics, --real")
+        missing = [name for name, v in (("--config", cfg), ("--intrinsics", intrinsics), ("--real", real)) if not v]
+        raise ConfigError(f"--run-dir {run_dir}: no run there to resume; a new run needs --config, --intrinsics and "
+                          f"--real ({', '.join(missing)} not given)")
     check_data(cfg, intrinsics, real)
     if probe:
         check_probe(probe)
