@@ -130,6 +130,20 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     from PIL import Image
 
     assert Image.open(gif).n_frames == FRAMES
+    # the orbit strip: R of the run beside Cycles, and with --decompose H's normal and albedo of Cycles' frames
+    strip = [sys.executable, str(ROOT / "bench" / "turntable_strip.py"), "--intrinsics", str(paths / "intr"),
+             "--pbr", str(paths / "pbr"), "--every", "2"]
+    for name, extra in (("plain", []), ("dec", ["--decompose"])):
+        subprocess.run(strip + extra + ["--out", str(tmp_path / f"{name}.png"), f"tiny={run}"], cwd=ROOT, check=True,
+                       capture_output=True)
+    plain, dec = (np.asarray(Image.open(tmp_path / f"{n}.png")) for n in ("plain", "dec"))
+    w = (plain.shape[1] - 4 * 2) // 5  # normal | albedo | reflection | R | Cycles, 2-px gaps
+    assert dec.shape[0] == plain.shape[0] and dec.shape[1] == plain.shape[1] + 2 * (w + 2)
+    assert np.array_equal(dec[:, :plain.shape[1]], plain)  # the columns before H's are the plain strip's
+    assert dec[20:, plain.shape[1]:].std() > 0  # H's panels drawn, not blank
+    bad = subprocess.run(strip[:4] + ["--decompose", "--out", str(tmp_path / "x.png"), f"tiny={run}"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "--decompose reads Cycles' frames" in bad.stderr
     bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
                     "--video", str(tmp_path / "R.avi"), check=False)
     assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
