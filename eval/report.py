@@ -300,6 +300,7 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
                         "size": [cfg.data.height, cfg.data.width], "trained_on": trained_on[run],
                         "probe_curve": probe_curve, "gallery": panels,
                         "rendered": sorted(rendered)[:grid], "pred_dir": pred_dir, "step": step})
+    _name_runs(entries)
     if references:
         run, opts, cfg = runs_opts[0]
         size = (cfg.data.height, cfg.data.width)
@@ -324,6 +325,33 @@ def build_report(runs: list[Path], data: Path, real: Path, out: Path, intrinsics
     return out / "report.html"
 
 
+def run_names(runs: list[str]) -> list[str]:
+    """Each run's folder name, with as many parent folders as it takes to tell it apart from the
+    other runs (two seeds' runs are often both called `full`)."""
+    parts = [Path(r).parts or (str(r),) for r in runs]
+
+    def suffix(p: tuple[str, ...], depth: int) -> str:
+        return "/".join(p[-depth:])
+
+    names = []
+    for i, p in enumerate(parts):
+        depth = 1
+        while depth < len(p) and any(suffix(p, depth) == suffix(q, depth) for j, q in enumerate(parts) if j != i):
+            depth += 1
+        names.append(suffix(p, depth))
+    return names
+
+
+def _name_runs(entries: list[dict]) -> None:
+    """Give each run entry its table name and, where two runs share a configuration label, a
+    column title that tells them apart in the grids."""
+    names = run_names([e["run"] for e in entries])
+    labels = [e["label"] for e in entries]
+    for e, name in zip(entries, names):
+        e["name"] = name
+        e["title"] = e["label"] if labels.count(e["label"]) == 1 else f"{e['label']}, {name}"
+
+
 def render_grid_png(entries, intrinsics: Path, grid: int, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
     """One picture for people: per row the same unseen intrinsics (normal, albedo, reflection),
     then every run's render of them, each column labelled."""
@@ -332,7 +360,7 @@ def render_grid_png(entries, intrinsics: Path, grid: int, tile: tuple[int, int] 
     renderers = [e for e in entries if e["rendered"]]
     ds = open_dataset(intrinsics, kinds=("intrinsics", "pbr"))
     w, h = tile
-    labels = ["normal", "albedo", "reflection"] + [e["label"] for e in renderers]
+    labels = ["normal", "albedo", "reflection"] + [e.get("title", e["label"]) for e in renderers]
     n = min(grid, len(ds))
     sheet = Image.new("RGB", (w * len(labels), 18 + h * n), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
@@ -404,7 +432,7 @@ def decomposition_tiles(entries, data: Path, rows: int) -> dict:
         images.append({"image": (linear_to_srgb(gt["rgb"]) * 255 + 0.5).astype(np.uint8),
                        "truth": {k: gt[k] for k in INTRINSIC_LAYERS},
                        "predictions": [ds.load(pos[index]) if index in pos else None for ds, pos in preds]})
-    return {"labels": [e["label"] for e in entries if e["pred_dir"] is not None], "images": images}
+    return {"labels": [e.get("title", e["label"]) for e in entries if e["pred_dir"] is not None], "images": images}
 
 
 def decomposition_grid_png(tiles: dict, tile: tuple[int, int] = (256, 128)) -> np.ndarray:
@@ -440,7 +468,7 @@ def _table1(entries) -> tuple[list[str], list[list[str]]]:
             continue
         paper = PAPER_TABLE1.get(e["label"])
         fid = f"{f['fid']:.2f}" + (" (biased: < %d images)" % f["fid_min_images"] if f["fid_biased"] else "")
-        rows.append([Path(e["run"]).name, e["label"], str(e["step"]), fid, f"{100 * f['kid']:.2f}",
+        rows.append([e.get("name", Path(e["run"]).name), e["label"], str(e["step"]), fid, f"{100 * f['kid']:.2f}",
                      kid_text(f), f"{f['real_images']}/{f['fake_images']}",
                      f"{paper[0]:.1f} / {paper[1]:.1f}" if paper else "-"])
     return head, rows
@@ -456,7 +484,7 @@ def _table3(entries) -> tuple[list[str], list[list[str]]]:
         if d is None:
             continue
         paper = PAPER_TABLE3.get(e["label"])
-        rows.append([Path(e["run"]).name, e["label"], f"{d['normal_mean_deg']:.2f}", f"{d['normal_median_deg']:.2f}",
+        rows.append([e.get("name", Path(e["run"]).name), e["label"], f"{d['normal_mean_deg']:.2f}", f"{d['normal_median_deg']:.2f}",
                      f"{d['normal_under_11.25_pct']:.1f}%", f"{d['normal_under_22.5_pct']:.1f}%",
                      f"{d['normal_under_30_pct']:.1f}%", f"{d['albedo_l1_srgb255']:.2f}",
                      f"{d['albedo_si_l1_linear']:.4f}", f"{d['reflection_l1_srgb255']:.2f}",
@@ -557,7 +585,7 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
             if j < len(e["rendered"]):
                 cells.append(_img(_data_uri(Path(e["rendered"][j]).read_bytes()), f"{e['label']} render"))
         ren_rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
-    ren_head = "".join(f"<th>{h}</th>" for h in ["normal", "albedo", "reflection"] + [html.escape(e["label"]) for e in renderers])
+    ren_head = "".join(f"<th>{h}</th>" for h in ["normal", "albedo", "reflection"] + [html.escape(e.get("title", e["label"])) for e in renderers])
 
     # decomposition grid: image and ground truth, then each run's prediction
     dec_rows = []
@@ -592,7 +620,7 @@ def _html(entries, tiles: dict, data: Path, real: Path, intrinsics: Path, grid: 
         data_bytes, mime, caption = reference
         reference_html = ("<h2>For comparison</h2><figure>" + _img(_data_uri(data_bytes, mime), caption)
                           + f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-    curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(Path(e['run']).name)})</h3>"
+    curves = "".join(f"<h3>{html.escape(e['label'])} ({html.escape(e.get('name', Path(e['run']).name))})</h3>"
                      + _img(_data_uri(e["curve"]), f"loss curves {e['label']}")
                      + (_img(_data_uri(e["probe_curve"]), f"probe curves {e['label']}") if e.get("probe_curve") else "")
                      for e in entries if e["curve"])

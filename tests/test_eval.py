@@ -499,3 +499,17 @@ def test_a_run_trained_with_a_changed_objective_is_not_labelled_as_the_papers_ro
     assert run_label(load_config("cpu-small", ["loss.decomposition_cycle=false", "loss.w_adv_m=0.5"])) == \
         "Ours, w/o decomp. cycle, loss.w_adv_m=0.5"
     assert run_label(load_config("cyclegan")) == "CycleGAN"  # its objective is its own
+
+
+def test_runs_with_the_same_folder_name_are_told_apart_in_a_report():
+    from eval.report import _name_runs, run_names
+
+    assert run_names(["out/a/full", "out/b/runs/no_dec"]) == ["full", "no_dec"]  # unique names stay short
+    assert run_names(["out/full_s21/runs/full", "out/full_s22/runs/full"]) == ["full_s21/runs/full",
+                                                                               "full_s22/runs/full"]
+    assert run_names(["x/full", "x/full"]) == ["x/full", "x/full"]  # the same folder twice: its whole path
+    entries = [{"run": "s21/full", "label": "Ours (full)"}, {"run": "s22/full", "label": "Ours (full)"},
+               {"run": "s21/no_dec", "label": "Ours, w/o decomp. cycle"}]
+    _name_runs(entries)
+    assert [e["name"] for e in entries] == ["s21/full", "s22/full", "no_dec"]
+    assert [e["title"] for e in entries] == ["Ours (full), s21/full", "Ours (full), s22/full", "Ours, w/o decomp. cycle"]
