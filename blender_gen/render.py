@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import scene as S
-from .camera import orbit_focal, orbit_pose, sample_camera
+from .camera import CameraError, orbit_focal, orbit_pose, sample_camera
 from .cars import RandomCars, load_catalogue, load_part_materials, select_cars
 from .dataset import read_exr_channels, sample_filename, sha256_file, write_exr
 from .envmap import PROCEDURAL_PREFIX, background_lookup, cached_procedural_sky
@@ -246,7 +246,11 @@ class SampleRenderer:
         env = self.env_names[int(block.integers(len(self.env_names)))]
         rotation = float(rng.uniform(0.0, 360.0))
         car = self.car(spec)
-        pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
+        try:
+            pose = sample_camera(rng, car.points, self.recipe.width, self.recipe.height, self.recipe.camera)
+        except CameraError as e:  # name the car: with several --cars, one model may be too large for the ranges
+            extent = np.ptp(np.asarray(car.points)[:, :3], axis=0)
+            raise CameraError(f"car {spec.name!r} ({extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} m): {e}") from None
         return {"seed": seed, "spec": spec, "car": car, "paint": paint, "env": env, "rotation": rotation, "pose": pose}
 
     def _draw_orbit(self, frame: int) -> dict:

@@ -194,3 +194,15 @@ def test_a_sets_framing_column_names_coverage_paper_rule_or_orbit():
     assert framing_of({"camera": {"min_coverage": 0.08}}) == "paper's rule (>= 0.08)"
     assert framing_of({"camera": {"min_coverage": 0.08}, "orbit": {"radius": 6.0}}) == "turntable orbit"
     assert framing_of({}) == "-"
+
+
+def test_a_car_no_camera_can_frame_is_named_in_one_line(tmp_path):
+    # With several --cars one model may be too large (or the coverage too tight) for the camera
+    # ranges: the error names that car and its size, so the user knows which one to drop.
+    out = tmp_path / "never"
+    res = run_gen("intrinsics", "--out", str(out), "--count", "1", "--cars", "van_b", "--resolution", "64x32",
+                  "--min-coverage", "0.95", "--quiet", check=False)
+    assert res.returncode == 1, res.stderr
+    line = res.stderr.strip()
+    assert len(line.splitlines()) == 1 and "car 'van_b' (" in line and "no valid camera" in line, line
+    assert not (out / "dataset.json").exists() or '"complete": false' in (out / "dataset.json").read_text()
