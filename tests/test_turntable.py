@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from blender_gen.dataset import open_dataset
 from eval.flicker import frame_differences, temporal_error
@@ -144,6 +145,27 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     bad = subprocess.run(strip[:4] + ["--decompose", "--out", str(tmp_path / "x.png"), f"tiny={run}"], cwd=ROOT,
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "--decompose reads Cycles' frames" in bad.stderr
+    # H's figures at every checkpoint on a set no probe saw (bench/checkpoint_curve.py); a rerun resumes
+    curve = tmp_path / "curve.jsonl"
+    cmd = [sys.executable, str(ROOT / "bench" / "checkpoint_curve.py"), str(run), "--sets", str(paths / "pbr"),
+           "--out", str(curve), "--plot", str(tmp_path / "curve.png")]
+    subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True)
+    rows = [json.loads(line) for line in curve.read_text().splitlines()]
+    steps = sorted(int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("step_*.safetensors"))
+    assert steps and [r["step"] for r in rows] == steps and {r["set"] for r in rows} == {str(paths / "pbr")}
+    # the constant predictor's normal error, from the set's own normals: the angle to the camera axis on the car
+    from train.probe import load_probe
+
+    probe = load_probe(paths / "pbr", 32, 64, limit=None)
+    n, on = torch.nn.functional.normalize(probe.maps[:, 0:3], dim=1), probe.masks[:, 0] >= 0.5
+    ang = torch.rad2deg(torch.acos(n[:, 2].clamp(-1, 1)))
+    keep = on.flatten(1).any(1)
+    want = float(((ang * on).sum((1, 2)) / on.sum((1, 2)).clamp_min(1))[keep].mean())
+    assert rows[-1]["const_normal_deg"] == pytest.approx(want, abs=0.01)
+    assert 0 < rows[-1]["normal_deg"] < 180 and rows[-1]["prior_normal_deg"] != rows[-1]["const_normal_deg"]
+    before = curve.read_text()
+    subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True)
+    assert curve.read_text() == before and Image.open(tmp_path / "curve.png").size[0] > 0
     bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
                     "--video", str(tmp_path / "R.avi"), check=False)
     assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
