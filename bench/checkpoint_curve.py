@@ -2,6 +2,7 @@
 
     python bench/checkpoint_curve.py RUN [RUN ...] --sets tt/kenney_sedan_pbr [SET ...] \
         --out curve.jsonl [--plot curve.png] [--follow]
+    python bench/checkpoint_curve.py --replot curve.jsonl [more.jsonl ...] --plot curve.png
 
 The training probe scores H on one set (the run's --probe) every few hundred steps; this scores it
 on others afterwards or alongside, e.g. turntables of cars of another kind. For every checkpoint
@@ -75,7 +76,7 @@ def score(run: Path, step: int, path: Path, probes: dict[str, object]) -> list[d
     return rows
 
 
-def plot(rows: list[dict], out: Path) -> None:
+def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,16 +91,18 @@ def plot(rows: list[dict], out: Path) -> None:
             if not rr:
                 continue
             steps = [r["step"] for r in rr]
-            label = "/".join(Path(run).parts[-3:])
+            label = (names or {}).get(run) or "/".join(Path(run).parts[-3:])
             ax.plot(steps, [r["normal_deg"] for r in rr], "o-", ms=3, color=f"C{k}", label=f"H, {label}")
             ax.plot(steps, [r["prior_normal_deg"] for r in rr], "x-.", ms=4, color=f"C{k}", alpha=0.6,
                     label=f"per-pixel prior, {label}")
+        ax.set_xlim(0, 1.03 * max(r["step"] for r in rows))  # one step axis for every panel
         ax.set_title(Path(s).name, fontsize=9)
         ax.set_xlabel("step")
         ax.set_ylabel("normal error (deg)")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=6)
-    fig.tight_layout()
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(labels) + 3) // 4), 1, 1))
     tmp = out.with_name(out.name + ".part")
     fig.savefig(tmp, format="png", dpi=90)
     plt.close(fig)
@@ -108,13 +111,23 @@ def plot(rows: list[dict], out: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+", type=Path)
-    ap.add_argument("--sets", nargs="+", type=Path, required=True, help="PBR sets (images with their intrinsics)")
-    ap.add_argument("--out", type=Path, required=True, help="JSON-lines file, appended to")
+    ap.add_argument("runs", nargs="*", type=Path)
+    ap.add_argument("--sets", nargs="+", type=Path, help="PBR sets (images with their intrinsics)")
+    ap.add_argument("--replot", nargs="+", type=Path, help="only draw --plot from these JSON-lines files")
+    ap.add_argument("--label", action="append", default=[], metavar="RUN=TEXT", help="a run's name in the plot's legend")
+    ap.add_argument("--out", type=Path, help="JSON-lines file, appended to")
     ap.add_argument("--plot", type=Path, help="PNG of the normal error against the step, one panel per set")
     ap.add_argument("--follow", action="store_true", help="wait for new checkpoints until each run's last")
     ap.add_argument("--poll", type=float, default=60.0, help="seconds between looks with --follow")
     args = ap.parse_args()
+    names = dict(item.split("=", 1) for item in args.label if "=" in item)
+    if args.replot:
+        if not args.plot:
+            sys.exit("--replot needs --plot")
+        plot([json.loads(line) for f in args.replot for line in f.read_text().splitlines() if line.strip()], args.plot, names)
+        return
+    if not args.runs or not args.sets or not args.out:
+        sys.exit("give run folders, --sets and --out (or --replot FILES --plot PNG)")
     torch.set_num_threads(1)
     for s in args.sets:
         if not (s / "dataset.json").is_file():
@@ -149,12 +162,12 @@ def main() -> None:
                 print(f"{run} step {step}: " + ", ".join(f"{Path(r['set']).name} {r['normal_deg']:.1f} "
                                                         f"(prior {r['prior_normal_deg']:.1f})" for r in new), flush=True)
                 if args.plot:
-                    plot(rows, args.plot)
+                    plot(rows, args.plot, names)
         if not args.follow or finished:
             break
         time.sleep(args.poll)
     if args.plot and rows:
-        plot(rows, args.plot)
+        plot(rows, args.plot, names)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from eval.report import build_report
 from eval.fid import (InceptionFeatures, InceptionWeightsError, fid_from_features, find_weights, kid_from_features,
                       kid_text)
 
-from .conftest import ROOT, invoke_here
+from .conftest import ROOT, bench_module, invoke_here
 from .train_helpers import tiny_fit, tiny_intrinsics, tiny_photos
 
 
@@ -513,3 +513,19 @@ def test_runs_with_the_same_folder_name_are_told_apart_in_a_report():
     _name_runs(entries)
     assert [e["name"] for e in entries] == ["s21/full", "s22/full", "no_dec"]
     assert [e["title"] for e in entries] == ["Ours (full), s21/full", "Ours (full), s22/full", "Ours, w/o decomp. cycle"]
+
+
+def test_a_reports_per_sample_csv_splits_by_car(tmp_path):
+    # bench/csv_by_car.py: per-image means over the named cars and over the rest, which together
+    # make the report's mean; a file without a car column is refused by name
+    split = bench_module("csv_by_car").split
+    path = tmp_path / "d.csv"
+    rows = [("sedan", 10.0, 20.0, 30.0), ("sedan_a", 40.0, 50.0, 60.0), ("van", 20.0, 40.0, 10.0)]
+    path.write_text("index,car,normal_mean_deg,albedo_l1_srgb255,reflection_l1_srgb255\n"
+                    + "".join(f"{i},{c},{n},{a},{f}\n" for i, (c, n, a, f) in enumerate(rows)))
+    got = split(path, {"sedan", "van"})
+    assert got["--cars"] == {"images": 2, "normal_mean_deg": 15.0, "albedo_l1_srgb255": 30.0, "reflection_l1_srgb255": 20.0}
+    assert got["others"]["images"] == 1 and got["others"]["normal_mean_deg"] == 40.0
+    (tmp_path / "x.csv").write_text("index,normal_mean_deg\n0,1\n")
+    with pytest.raises(ValueError, match="x.csv: not a report's per-sample CSV"):
+        split(tmp_path / "x.csv", {"sedan"})
