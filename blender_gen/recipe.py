@@ -131,16 +131,32 @@ def _named_file(folder: Path, rest: str) -> str | None:
     return rest if (folder / rest).is_file() else rest.split()[-1]
 
 
-def companion_files(path: Path) -> list[str]:
-    """Files (relative to the model's folder, sorted) that importing `path` also reads. One that
-    lies outside the model's folder (`../`, an absolute path) is refused before anything reads it."""
-    found = _companions(Path(path))
+# A Gazebo model package keeps meshes/ and materials/textures/ side by side under the folder that
+# holds model.sdf or model.config, and its .mtl files name textures as ../materials/textures/X.png.
+PACKAGE_MARKERS = ("model.sdf", "model.config")
+
+
+def model_root(path: Path) -> Path:
+    """The folder whose files importing `path` may read: the model file's own folder, or the
+    model package above it (a Gazebo package: its model.sdf or model.config one level up)."""
     folder = Path(path).resolve().parent
+    if any((folder.parent / m).is_file() for m in PACKAGE_MARKERS):
+        return folder.parent
+    return folder
+
+
+def companion_files(path: Path) -> list[str]:
+    """Files (relative to the model file's folder, sorted) that importing `path` also reads. One
+    outside `model_root` (`../` past it, an absolute path elsewhere) is refused before anything
+    reads it."""
+    found = _companions(Path(path))
+    folder, root = Path(path).resolve().parent, model_root(path)
     for rel in found:
         target = (folder / rel).resolve()
-        if folder not in target.parents:
-            raise ValueError(f"--cars {path}: refers to {rel!r}, outside the model's folder; a model may only "
-                             "read files beside or below it")
+        if root not in target.parents:
+            where = "its model package" if root != folder else "the model's folder"
+            raise ValueError(f"--cars {path}: refers to {rel!r}, outside {where}; a model may only read files "
+                             "beside or below it (or in its Gazebo model package, marked by model.sdf or model.config)")
     return found
 
 

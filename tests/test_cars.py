@@ -245,3 +245,31 @@ def test_cars_take_folders_globs_and_file_names_with_commas_or_plus(tmp_path):
     for bad, message in ((str(empty), "a folder without model files"), (str(fleet / "*.fbx"), "matches no model file")):
         with pytest.raises(click.ClickException, match=message):
             check_cars((bad,), rules)
+
+
+def test_a_gazebo_package_may_read_its_textures_and_nothing_outside_it(tmp_path):
+    # Gazebo's layout: PKG/model.sdf, PKG/meshes/car.obj whose .mtl names ../materials/textures/X.png;
+    # that file belongs to the model (and to the recipe's identity); without the package marker, or
+    # past the package, a reference outside the model's folder is still refused
+    from blender_gen.recipe import Recipe, companion_files, model_root
+
+    pkg = tmp_path / "prius"
+    (pkg / "meshes").mkdir(parents=True)
+    (pkg / "materials" / "textures").mkdir(parents=True)
+    (pkg / "materials" / "textures" / "paint.png").write_bytes(b"png v1")
+    (pkg / "meshes" / "car.mtl").write_text("newmtl body\nmap_Kd ../materials/textures/paint.png\n")
+    obj = pkg / "meshes" / "car.obj"
+    obj.write_text("mtllib car.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl body\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="outside the model's folder"):
+        companion_files(obj)
+    (pkg / "model.sdf").write_text("<sdf version='1.6'/>")
+    assert model_root(obj) == pkg.resolve()
+    assert companion_files(obj) == ["../materials/textures/paint.png", "car.mtl"]
+    recipe = Recipe(kind="intrinsics", seed=0, width=64, height=32, cars=(str(obj),))
+    before = recipe.identity()
+    (pkg / "materials" / "textures" / "paint.png").write_bytes(b"png v2")
+    assert recipe.identity() != before
+    (tmp_path / "secret.png").write_bytes(b"x")
+    (pkg / "meshes" / "car.mtl").write_text("newmtl body\nmap_Kd ../../secret.png\n")
+    with pytest.raises(ValueError, match="outside its model package"):
+        companion_files(obj)
