@@ -84,8 +84,12 @@ def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> No
 
     sets = sorted({r["set"] for r in rows})
     runs = sorted({r["run"] for r in rows})
-    fig, axes = plt.subplots(1, len(sets), figsize=(4.2 * len(sets), 3.4), squeeze=False)
-    for ax, s in zip(axes[0], sets):
+    ncol = min(4, len(sets))
+    nrow = -(-len(sets) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.2 * nrow + 0.4), squeeze=False)
+    for ax in axes.flat[len(sets):]:
+        ax.axis("off")
+    for ax, s in zip(axes.flat, sets):
         for k, run in enumerate(runs):
             rr = sorted((r for r in rows if r["set"] == s and r["run"] == run), key=lambda r: r["step"])
             if not rr:
@@ -102,7 +106,7 @@ def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> No
         ax.grid(alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(labels) + 3) // 4), 1, 1))
+    fig.tight_layout(rect=(0, (0.06 + 0.035 * ((len(labels) + 3) // 4)) / nrow, 1, 1))
     tmp = out.with_name(out.name + ".part")
     fig.savefig(tmp, format="png", dpi=90)
     plt.close(fig)
