@@ -15,7 +15,8 @@ import csv
 import sys
 from pathlib import Path
 
-COLUMNS = (("normal_mean_deg", "normal (deg)"), ("albedo_l1_srgb255", "albedo L1"), ("reflection_l1_srgb255", "reflection L1"))
+COLUMNS = (("normal_mean_deg", "normal (deg)"), ("albedo_l1_srgb255", "albedo L1"),
+           ("reflection_l1_srgb255", "reflection L1"))
 
 
 def split(path: Path, cars: set[str]) -> dict[str, dict[str, float]]:
