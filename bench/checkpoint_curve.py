@@ -22,22 +22,24 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from train.checkpoint import checkpoint_files  # noqa: E402
 from train.data import IntrinsicsData  # noqa: E402
 from train.inference import load_run_checkpoint, load_run_options  # noqa: E402
-from train.probe import evaluate_probe, load_probe, pixel_prior, training_means  # noqa: E402
+from train.probe import evaluate_probe, load_probe, training_references  # noqa: E402
+from train.run_folder import RunFolder  # noqa: E402
 
 KEYS = ("normal_deg", "albedo_l1", "reflection_l1")
 
 
 def checkpoints(run: Path) -> list[tuple[int, Path]]:
+    """(step, file) of a run's checkpoints, oldest first (the step as the file name gives it)."""
     out = []
-    for p in sorted((run / "checkpoints").glob("step_*.safetensors")):
+    for p in reversed(checkpoint_files(RunFolder(run).checkpoints)):
         try:
             out.append((int(p.stem.split("_")[1]), p))
         except ValueError:
@@ -48,11 +50,8 @@ def checkpoints(run: Path) -> list[tuple[int, Path]]:
 def probes_for(run: Path, sets: list[Path]) -> dict[str, object]:
     """Each set at the run's training size with the run's constant and per-pixel prior."""
     opts, cfg = load_run_options(run)
-    intr = IntrinsicsData(Path(opts["intrinsics"]), cfg.data.height, cfg.data.width)
-    picks = np.linspace(0, len(intr) - 1, min(200, len(intr))).round().astype(int)
-    stacks = torch.stack([intr[(int(i), False)] for i in picks])
-    const_a, const_f = training_means(stacks)
-    prior = pixel_prior(stacks)
+    const_a, const_f, prior = training_references(IntrinsicsData(Path(opts["intrinsics"]), cfg.data.height,
+                                                                   cfg.data.width))
     out = {}
     for s in sets:
         p = load_probe(s, cfg.data.height, cfg.data.width, limit=None)
@@ -142,12 +141,12 @@ def main() -> None:
     rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()] if args.out.exists() else []
     done = {(r["run"], r["step"], r["set"]) for r in rows}
     probes: dict[Path, dict] = {}
+    last = {run: load_run_options(run)[1].optim.max_steps for run in args.runs}
     while True:
         finished = True
         for run in args.runs:
-            _, cfg = load_run_options(run)
             have = checkpoints(run)
-            if not have or have[-1][0] < cfg.optim.max_steps:
+            if not have or have[-1][0] < last[run]:
                 finished = False
             for step, path in have:
                 if all((str(run), step, str(s)) in done for s in args.sets):

@@ -30,7 +30,7 @@ from .data import (CachedTensors, IntrinsicsData, RealImages, StepSampler, cache
                    set_identity, skipped_photos_note)
 from .model import build_model
 from .model_card import write_model_card
-from .probe import EMA_PREFIX, evaluate_probe, pixel_prior, probe_plot
+from .probe import EMA_PREFIX, evaluate_probe, probe_plot
 from .run_folder import RunFolder
 
 
@@ -320,13 +320,10 @@ def make_probe(opts: dict, cfg: Config, intr: IntrinsicsData, device: str):
     (the means of up to 200 training intrinsics), on `device`; None without --probe."""
     if not opts.get("probe"):
         return None
-    from .probe import load_probe, training_means
+    from .probe import load_probe, training_references
 
     probe = load_probe(Path(opts["probe"]), cfg.data.height, cfg.data.width, limit=cfg.run.probe_samples)
-    picks = np.linspace(0, len(intr) - 1, min(200, len(intr))).round().astype(int)
-    stacks = torch.stack([intr[(int(i), False)] for i in picks])
-    probe.const_albedo, probe.const_reflection = training_means(stacks)
-    probe.prior = pixel_prior(stacks)
+    probe.const_albedo, probe.const_reflection, probe.prior = training_references(intr)
     return probe.to(device)
 
 

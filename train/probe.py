@@ -105,6 +105,15 @@ def pixel_prior(maps: torch.Tensor) -> torch.Tensor:
     return torch.cat(out)
 
 
+def training_references(intr, n: int = 200) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The no-image rows' values from up to `n` training intrinsics spread evenly over `intr` (an
+    IntrinsicsData): the constant predictor's albedo and reflection, and the per-pixel prior."""
+    picks = np.linspace(0, len(intr) - 1, min(n, len(intr))).round().astype(int)
+    stacks = torch.stack([intr[(int(i), False)] for i in picks])
+    albedo, reflection = training_means(stacks)
+    return albedo, reflection, pixel_prior(stacks)
+
+
 LAPLACE = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]])
 
 
