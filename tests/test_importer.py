@@ -101,6 +101,38 @@ print(json.dumps({{'counts': m.face_counts, 'unmatched': m.unmatched}}))
     assert counts.get("windshield", 0) + counts.get("window_side", 0) + counts.get("window_rear", 0) == 12
 
 
+def test_textures_are_found_in_the_model_package_and_a_missing_one_is_named(tmp_path):
+    # Gazebo's hatchback names a texture by a Gazebo URI (model://PKG/materials/textures/X.png) that
+    # Blender's OBJ importer cannot open: it printed "Failed to open dir" lines a user cannot act on.
+    # The project finds the file in the package; a texture found nowhere is named once, in words.
+    from PIL import Image
+
+    pkg = tmp_path / "hatch"
+    (pkg / "meshes").mkdir(parents=True)
+    (pkg / "materials" / "textures").mkdir(parents=True)
+    (pkg / "model.config").write_text("<model/>")
+    Image.new("RGB", (4, 4), (200, 20, 20)).save(pkg / "materials" / "textures" / "paint.png")
+    (pkg / "meshes" / "car.mtl").write_text("newmtl paint\nKd 1 1 1\nmap_Kd model://hatch/materials/textures/paint.png\n"
+                                           "newmtl trim\nKd 0.2 0.2 0.2\nmap_Kd nowhere.png\n")
+    (pkg / "meshes" / "car.obj").write_text(
+        "mtllib car.mtl\no car\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\n"
+        "usemtl paint\nf 1/1 2/2 3/3\nusemtl trim\nf 2/2 4/4 3/3\n")
+    code = f"""
+import json, bpy, numpy as np
+from blender_gen.cars.faces import read_car
+table, _ = read_car([__import__('pathlib').Path({str(pkg / 'meshes' / 'car.obj')!r})])
+print(json.dumps({{'textured': table.textured.tolist(), 'colour': np.round(table.colour, 2).tolist()}}))
+"""
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert "Failed to open dir" not in proc.stderr + proc.stdout
+    warnings = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "nowhere.png" in warnings[0] and "paint.png" not in warnings[0], proc.stderr
+    assert out["textured"] == [True, False]  # the paint read from the package's texture, the trim its base colour
+    assert out["colour"][0][0] > 0.7 > out["colour"][0][1] and out["colour"][1][0] < 0.6
+
+
 def test_loading_a_blend_never_runs_its_scripts(tmp_path):
     marker = tmp_path / "pwned.txt"
     blend = tmp_path / "evil.blend"

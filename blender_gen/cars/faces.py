@@ -15,7 +15,7 @@ import bpy
 import numpy as np
 
 from ..cli_errors import first_line
-from ..quiet import quiet_stdout
+from ..quiet import quiet_stdout, without_lines
 from .labeller import FaceTable, infer, named_part
 from .rules import MODEL_SUFFIXES, RulesError, base_name
 from .texsplit import MAX_DEPTH, MAX_PIECES, NAMED_DEPTH, sample, split_by_texture
@@ -38,7 +38,11 @@ def read_objects(path: Path) -> list[bpy.types.Object]:
                     raise KeyboardInterrupt from None
                 raise
         elif suffix == ".obj":
-            bpy.ops.wm.obj_import(filepath=str(path))
+            # The importer says "Failed to open dir" for each texture it cannot find beside the .mtl
+            # (Gazebo packages keep them in ../materials/textures/, or name them model://...);
+            # `_find_texture` looks them up, and `_read_files` names any that stay missing.
+            with without_lines("Failed to open dir"):
+                bpy.ops.wm.obj_import(filepath=str(path))
         elif suffix == ".blend":
             with open(path, "rb") as fh:
                 magic = fh.read(7)
@@ -113,7 +117,9 @@ def _material_info(mat, model: Path) -> dict:
             src = inp["Base Color"].links[0].from_node
             if src.type == "TEX_IMAGE" and src.image is not None:
                 img = _find_texture(src.image, model)
-                if img.size[0] > 0:
+                if img.size[0] == 0:
+                    info["missing"] = Path(bpy.path.abspath(img.filepath)).name or img.name
+                else:
                     w, h = img.size
                     px = np.empty(w * h * img.channels, dtype=np.float32)
                     img.pixels.foreach_get(px)
@@ -170,8 +176,12 @@ def _read_files(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object], n
             objects += new
             depsgraph = bpy.context.evaluated_depsgraph_get()
             before = sum(len(t) for t in rows["tris"])
+            missing: set[str] = set()
             for obj in (o for o in new if o.type == "MESH"):
-                _read_mesh(obj, depsgraph, path, rows)
+                missing |= _read_mesh(obj, depsgraph, path, rows)
+            if missing:
+                print(f"warning: {path}: texture(s) {', '.join(sorted(missing))} not found below the model's folder "
+                      f"or the one above it; those faces keep their material's base colour", file=sys.stderr)
             file_index.append(np.full(sum(len(t) for t in rows["tris"]) - before, k))
     except BaseException:
         remove_objects(objects)
@@ -183,14 +193,16 @@ def _read_files(paths: list[Path]) -> tuple[FaceTable, list[bpy.types.Object], n
     return FaceTable(**cat), objects, np.concatenate(file_index)
 
 
-def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
+def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> set[str]:
+    """Appends the object's triangles to `rows`; returns the names of textures its materials name but
+    that could not be found."""
     ev = obj.evaluated_get(depsgraph)
     me = ev.to_mesh()
     try:
         me.calc_loop_triangles()
         n_tri = len(me.loop_triangles)
         if n_tri == 0:
-            return
+            return set()
         mw = np.array(obj.matrix_world)
         nm = np.linalg.inv(mw[:3, :3]).T
         co = np.empty(len(me.vertices) * 3, np.float32)
@@ -252,6 +264,7 @@ def _read_mesh(obj, depsgraph, path: Path, rows: dict[str, list]) -> None:
         rows["textured"].append(textured)
         for key in ("alpha", "transmission", "emission"):
             rows[key].append(np.array([infos[k][key] for k in mi], dtype=np.float64))
+        return {infos[k]["missing"] for k in set(mi.tolist()) if "missing" in infos[k]}
     finally:
         ev.to_mesh_clear()
 
