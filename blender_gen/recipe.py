@@ -114,9 +114,37 @@ def _file_identity(path: str) -> dict:
     d = {"name": p.name, "sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
     reads = companion_files(p)
     if reads:  # absent for a self-contained file: recipes made before this keep their identity
-        d["reads"] = [{"name": rel, "sha256": hashlib.sha256((p.parent / rel).read_bytes()).hexdigest()}
-                      if (p.parent / rel).is_file() else {"name": rel, "missing": True} for rel in reads]
+        d["reads"] = [_read_identity(p, rel) for rel in reads]
     return d
+
+
+def _read_identity(model: Path, rel: str) -> dict:
+    """A file an import reads: by content where it is, else the texture found by name in its place
+    (what the renderer reads: cars/faces.py), else missing."""
+    target = model.parent / rel
+    if not target.is_file() and Path(rel).suffix.lower() in IMAGE_SUFFIXES:
+        target = texture_by_name(Path(rel).name, model) or target
+        if target.is_file():
+            return {"name": rel, "found": target.relative_to(model.parent.parent).as_posix(),
+                    "sha256": hashlib.sha256(target.read_bytes()).hexdigest()}
+    if not target.is_file():
+        return {"name": rel, "missing": True}
+    return {"name": rel, "sha256": hashlib.sha256(target.read_bytes()).hexdigest()}
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
+
+
+def texture_by_name(name: str, model: Path) -> Path | None:
+    """A texture the importer could not open where the model names it (a bare name of a file kept
+    elsewhere, a Gazebo model:// URI): the first file of that name below the model's folder, else
+    below the folder above it (model libraries keep textures beside the meshes folder: Gazebo's
+    materials/textures/)."""
+    for folder in (model.parent, model.parent.parent):
+        hits = sorted(q for q in folder.rglob(name) if q.is_file())
+        if hits:
+            return hits[0]
+    return None
 
 
 _MTL_MAPS = ("map_", "bump", "disp", "decal", "refl", "norm")
@@ -210,8 +238,21 @@ def block_seed(seed: int, index: int, views_per_car: int) -> int:
     return int(np.random.SeedSequence([seed, index // views_per_car, 1]).generate_state(1)[0])
 
 
+def _as_recorded(new, old):
+    """`new` with each texture found by name written as `old` recorded it where `old` called it
+    missing: sets made before such textures were hashed keep their identity (they never tracked them)."""
+    if isinstance(new, dict) and isinstance(old, dict):
+        if old.get("missing") and "found" in new and new.get("name") == old.get("name"):
+            return old
+        return {k: _as_recorded(v, old.get(k)) for k, v in new.items()}
+    if isinstance(new, list) and isinstance(old, list) and len(new) == len(old):
+        return [_as_recorded(n, o) for n, o in zip(new, old)]
+    return new
+
+
 def identity_diff(old: dict, new: dict) -> str | None:
     """The first field where two recipe identities differ, as text; None if equal."""
+    new, old = _as_recorded(new, old), _as_recorded(old, new)  # either may be the older (merged shards)
     for key in sorted(set(old) | set(new)):
         if key == "noise" and key not in old and old:
             return ("it was made by an older iae-gen whose samples depended on the order they were rendered "

@@ -2,6 +2,7 @@
 silhouette maths, the catalogue's distinctness, and random cars in a rendered dataset."""
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -269,6 +270,23 @@ def test_a_gazebo_package_may_read_its_textures_and_nothing_outside_it(tmp_path)
     before = recipe.identity()
     (pkg / "materials" / "textures" / "paint.png").write_bytes(b"png v2")
     assert recipe.identity() != before
+    # a texture named where it is not (a Gazebo model:// URI, a bare name) is read from the file of
+    # that name in the package, so that file is hashed too; sets made before recorded it as missing
+    # and keep their identity
+    from blender_gen.recipe import identity_diff
+
+    (pkg / "materials" / "textures" / "trim.png").write_bytes(b"trim v1")
+    (pkg / "meshes" / "car.mtl").write_text("newmtl body\nmap_Kd ../materials/textures/paint.png\n"
+                                           "newmtl trim\nmap_Kd model://prius/materials/textures/trim.png\n")
+    reads = recipe.identity()["cars"][0]["reads"]
+    assert {"name": "model://prius/materials/textures/trim.png", "found": "materials/textures/trim.png",
+            "sha256": hashlib.sha256(b"trim v1").hexdigest()} in reads
+    made_before = recipe.identity()
+    made_before["cars"][0]["reads"] = [{"name": r["name"], "missing": True} if "found" in r else r for r in reads]
+    assert identity_diff(made_before, recipe.identity()) is None is identity_diff(recipe.identity(), made_before)
+    first = recipe.identity()
+    (pkg / "materials" / "textures" / "trim.png").write_bytes(b"trim v2")
+    assert identity_diff(first, recipe.identity()) is not None
     (tmp_path / "secret.png").write_bytes(b"x")
     (pkg / "meshes" / "car.mtl").write_text("newmtl body\nmap_Kd ../../secret.png\n")
     with pytest.raises(ValueError, match="outside its model package"):

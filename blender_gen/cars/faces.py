@@ -16,13 +16,13 @@ import numpy as np
 
 from ..cli_errors import first_line
 from ..quiet import quiet_stdout, without_lines
+from ..recipe import texture_by_name
 from .labeller import FaceTable, infer, named_part
 from .rules import MODEL_SUFFIXES, RulesError, base_name
 from .texsplit import MAX_DEPTH, MAX_PIECES, NAMED_DEPTH, sample, split_by_texture
 from .wheels import place_wheel_files, take
 
 BLEND_MAGICS = (b"BLENDER", b"\x1f\x8b", b"\x28\xb5\x2f\xfd")  # plain, gzip, zstd
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
 
 
 def read_objects(path: Path) -> list[bpy.types.Object]:
@@ -73,17 +73,12 @@ def remove_objects(objects: list[bpy.types.Object]) -> None:
 
 
 def _find_texture(img, model: Path):
-    """The image itself, or, where the importer could not find its file, the first file of that
-    name in the model's folder tree: model libraries keep textures beside the meshes folder
-    (Gazebo: materials/textures/)."""
+    """The image itself, or, where the importer could not find its file, the file of that name that
+    `recipe.texture_by_name` finds (the one the recipe's identity hashes)."""
     if img.packed_file is not None or img.source != "FILE" or img.size[0] > 0:
         return img
-    name = Path(bpy.path.abspath(img.filepath)).name
-    for folder in (model.parent, model.parent.parent):
-        hits = sorted(p for p in folder.rglob(name) if p.is_file())
-        if hits:
-            return bpy.data.images.load(str(hits[0]), check_existing=True)
-    return img
+    found = texture_by_name(Path(bpy.path.abspath(img.filepath)).name, model)
+    return bpy.data.images.load(str(found), check_existing=True) if found else img
 
 
 def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
