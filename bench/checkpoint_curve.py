@@ -2,7 +2,7 @@
 
     python bench/checkpoint_curve.py RUN [RUN ...] --sets tt/kenney_sedan_pbr [SET ...] \
         --out curve.jsonl [--plot curve.png] [--follow]
-    python bench/checkpoint_curve.py --replot curve.jsonl [more.jsonl ...] --plot curve.png
+    python bench/checkpoint_curve.py --replot curve.jsonl [more.jsonl ...] --plot curve.png [--table STEP]
 
 The training probe scores H on one set (the run's --probe) every few hundred steps; this scores it
 on others afterwards or alongside, e.g. turntables of cars of another kind. For every checkpoint
@@ -112,6 +112,27 @@ def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> No
     tmp.replace(out)
 
 
+def table(rows: list[dict], step: int, names: dict[str, str] | None = None) -> str:
+    """Markdown: H's normal error at `step` per set (rows) and run (columns, in the order of the rows'
+    first appearance), each with that run's per-pixel prior, and the set's constant predictor."""
+    at = [r for r in rows if r["step"] == step]
+    if not at:
+        raise SystemExit(f"--table {step}: no rows at that step")
+    runs = list(dict.fromkeys(r["run"] for r in at))
+    sets = list(dict.fromkeys(r["set"] for r in at))
+    label = lambda run: (names or {}).get(run) or "/".join(Path(run).parts[-3:])  # noqa: E731
+    lines = [f"| H's normals at step {step} (deg; the run's per-pixel prior) | "
+             + " | ".join(label(r) for r in runs) + " | constant |", "|---" * (len(runs) + 2) + "|"]
+    for s in sets:
+        cells, const = [], ""
+        for run in runs:
+            r = next((r for r in at if r["set"] == s and r["run"] == run), None)
+            cells.append(f"{r['normal_deg']:.1f} ({r['prior_normal_deg']:.1f})" if r else "-")
+            const = f"{r['const_normal_deg']:.1f}" if r else const
+        lines.append(f"| {Path(s).name} | " + " | ".join(cells) + f" | {const} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*", type=Path)
@@ -122,12 +143,17 @@ def main() -> None:
     ap.add_argument("--plot", type=Path, help="PNG of the normal error against the step, one panel per set")
     ap.add_argument("--follow", action="store_true", help="wait for new checkpoints until each run's last")
     ap.add_argument("--poll", type=float, default=60.0, help="seconds between looks with --follow")
+    ap.add_argument("--table", type=int, metavar="STEP", help="with --replot: print H's normals at STEP as Markdown")
     args = ap.parse_args()
     names = dict(item.split("=", 1) for item in args.label if "=" in item)
     if args.replot:
-        if not args.plot:
-            sys.exit("--replot needs --plot")
-        plot([json.loads(line) for f in args.replot for line in f.read_text().splitlines() if line.strip()], args.plot, names)
+        if not (args.plot or args.table is not None):
+            sys.exit("--replot needs --plot or --table")
+        rows = [json.loads(line) for f in args.replot for line in f.read_text().splitlines() if line.strip()]
+        if args.table is not None:
+            print(table(rows, args.table, names))
+        if args.plot:
+            plot(rows, args.plot, names)
         return
     if not args.runs or not args.sets or not args.out:
         sys.exit("give run folders, --sets and --out (or --replot FILES --plot PNG)")

@@ -166,6 +166,14 @@ def test_video_of_r_on_the_path_and_its_flicker_relative_to_cycles(paths, tmp_pa
     before = curve.read_text()
     subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True)
     assert curve.read_text() == before and Image.open(tmp_path / "curve.png").size[0] > 0
+    # the rows at one step as a Markdown table: H and the prior per run, the constant per set
+    md = subprocess.run([sys.executable, str(ROOT / "bench" / "checkpoint_curve.py"), "--replot", str(curve),
+                         "--table", str(steps[-1]), "--label", f"{run}=mine"], cwd=ROOT, check=True,
+                        capture_output=True, text=True).stdout.splitlines()
+    last = rows[-1]
+    assert "| mine | constant |" in md[0] and len(md) == 3
+    assert md[2] == (f"| pbr | {last['normal_deg']:.1f} ({last['prior_normal_deg']:.1f}) | "
+                     f"{last['const_normal_deg']:.1f} |")
     bad = run_train("render", "--run", str(run), "--intrinsics", str(paths / "intr"), "--out", str(tmp_path / "f3"),
                     "--video", str(tmp_path / "R.avi"), check=False)
     assert bad.returncode and "expected a file ending in .mp4 or .gif" in bad.stderr
