@@ -75,6 +75,11 @@ def score(run: Path, step: int, path: Path, probes: dict[str, object]) -> list[d
     return rows
 
 
+def run_label(run: str, names: dict[str, str] | None = None) -> str:
+    """A run's name in the plot and the table: its --label, else the last three parts of its path."""
+    return (names or {}).get(run) or "/".join(Path(run).parts[-3:])
+
+
 def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> None:
     import matplotlib
 
@@ -94,7 +99,7 @@ def plot(rows: list[dict], out: Path, names: dict[str, str] | None = None) -> No
             if not rr:
                 continue
             steps = [r["step"] for r in rr]
-            label = (names or {}).get(run) or "/".join(Path(run).parts[-3:])
+            label = run_label(run, names)
             ax.plot(steps, [r["normal_deg"] for r in rr], "o-", ms=3, color=f"C{k}", label=f"H, {label}")
             ax.plot(steps, [r["prior_normal_deg"] for r in rr], "x-.", ms=4, color=f"C{k}", alpha=0.6,
                     label=f"per-pixel prior, {label}")
@@ -120,9 +125,8 @@ def table(rows: list[dict], step: int, names: dict[str, str] | None = None) -> s
         raise SystemExit(f"--table {step}: no rows at that step")
     runs = list(dict.fromkeys(r["run"] for r in at))
     sets = list(dict.fromkeys(r["set"] for r in at))
-    label = lambda run: (names or {}).get(run) or "/".join(Path(run).parts[-3:])  # noqa: E731
     lines = [f"| H's normals at step {step} (deg; the run's per-pixel prior) | "
-             + " | ".join(label(r) for r in runs) + " | constant |", "|---" * (len(runs) + 2) + "|"]
+             + " | ".join(run_label(r, names) for r in runs) + " | constant |", "|---" * (len(runs) + 2) + "|"]
     for s in sets:
         cells, const = [], ""
         for run in runs:
@@ -156,7 +160,7 @@ def main() -> None:
             plot(rows, args.plot, names)
         return
     if not args.runs or not args.sets or not args.out:
-        sys.exit("give run folders, --sets and --out (or --replot FILES --plot PNG)")
+        sys.exit("give run folders, --sets and --out (or --replot FILES with --plot PNG or --table STEP)")
     torch.set_num_threads(1)
     for s in args.sets:
         if not (s / "dataset.json").is_file():

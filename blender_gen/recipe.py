@@ -118,21 +118,20 @@ def _file_identity(path: str) -> dict:
     return d
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
+
+
 def _read_identity(model: Path, rel: str) -> dict:
     """A file an import reads: by content where it is, else the texture found by name in its place
     (what the renderer reads: cars/faces.py), else missing."""
     target = model.parent / rel
-    if not target.is_file() and Path(rel).suffix.lower() in IMAGE_SUFFIXES:
-        target = texture_by_name(Path(rel).name, model) or target
-        if target.is_file():
-            return {"name": rel, "found": target.relative_to(model.parent.parent).as_posix(),
-                    "sha256": hashlib.sha256(target.read_bytes()).hexdigest()}
-    if not target.is_file():
+    if target.is_file():
+        return {"name": rel, "sha256": hashlib.sha256(target.read_bytes()).hexdigest()}
+    found = texture_by_name(Path(rel).name, model) if Path(rel).suffix.lower() in IMAGE_SUFFIXES else None
+    if found is None:
         return {"name": rel, "missing": True}
-    return {"name": rel, "sha256": hashlib.sha256(target.read_bytes()).hexdigest()}
-
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff")
+    return {"name": rel, "found": found.relative_to(model.parent.parent).as_posix(),
+            "sha256": hashlib.sha256(found.read_bytes()).hexdigest()}
 
 
 def texture_by_name(name: str, model: Path) -> Path | None:
