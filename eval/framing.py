@@ -131,8 +131,7 @@ def photo_frames(photos: list[Path], limit: int, progress: bool) -> Iterator[tup
     from blender_gen.dataset import DatasetError
     from train.data import read_photo
 
-    for path in tqdm(spread(sorted(photos), limit), desc="framing", unit="photo", disable=not progress,
-                     leave=False):
+    for path in tqdm(spread(sorted(photos), limit), desc="framing", unit="photo", disable=not progress):
         try:
             yield str(path), to_frame(read_photo(path))
         except DatasetError:
@@ -172,8 +171,7 @@ def pbr_frames(root: Path, limit: int = LIMIT, progress: bool = True) -> Iterato
     from blender_gen.dataset import open_dataset
 
     ds = open_dataset(Path(root), kinds=("pbr",))
-    for i in tqdm(spread(list(range(len(ds))), limit), desc="framing", unit="image", disable=not progress,
-                  leave=False):
+    for i in tqdm(spread(list(range(len(ds))), limit), desc="framing", unit="image", disable=not progress):
         s = ds.load(i, ["rgb", "material"])
         # the car is every pixel with a part material: the mask layer leaves out glass (it shows
         # what is behind), while the cameras and a person count windows and glass roofs as the car

@@ -112,6 +112,15 @@ def test_the_estimate_finds_a_car_shaped_region_and_skips_unreadable_photos(tmp_
     (tmp_path / "empty" / "IMG_0001.HEIC").write_bytes(b"\0" * 64)  # a phone's default format
     heic = CliRunner().invoke(main, ["framing", str(tmp_path / "empty")])
     assert heic.exit_code == 1 and "1 photo(s) in formats not read here (.heic; first IMG_0001.HEIC)" in heic.output
+    # with the progress bar on and stderr in a log file, the error is a line of its own, not
+    # appended to the bar's carriage-returned line
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "a.jpg").write_bytes(b"junk")
+    log = subprocess.run([sys.executable, "-m", "eval.cli", "framing", str(tmp_path / "junk")],
+                         capture_output=True, cwd=ROOT)  # bytes: text mode would turn the bar's \r into \n
+    err = log.stderr.decode()
+    assert log.returncode == 1 and "framing:" in err  # the bar was drawn
+    assert any(line.startswith("Error: no readable photo among 1") for line in err.split("\n")), err
 
 
 @pytest.mark.blender
