@@ -7,6 +7,7 @@ in dataset.json and compared on every re-run so a folder never mixes two recipes
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -134,16 +135,47 @@ def _read_identity(model: Path, rel: str) -> dict:
             "sha256": hashlib.sha256(found.read_bytes()).hexdigest()}
 
 
+# How far the search for a texture by name looks: Gazebo's materials/textures/ is two folders below
+# the folder above meshes/. The bounds keep a model saved in a large folder (a home folder's
+# Downloads) from walking the whole disk.
+TEXTURE_SEARCH_DEPTH = 3
+TEXTURE_SEARCH_ENTRIES = 50_000
+
+
 def texture_by_name(name: str, model: Path) -> Path | None:
     """A texture the importer could not open where the model names it (a bare name of a file kept
-    elsewhere, a Gazebo model:// URI): the first file of that name below the model's folder, else
-    below the folder above it (model libraries keep textures beside the meshes folder: Gazebo's
-    materials/textures/)."""
+    elsewhere, a Gazebo model:// URI): the first file of that name (in path order) at most
+    TEXTURE_SEARCH_DEPTH folders below the model's folder, else below the folder above it (model
+    libraries keep textures beside the meshes folder: Gazebo's materials/textures/)."""
     for folder in (model.parent, model.parent.parent):
-        hits = sorted(q for q in folder.rglob(name) if q.is_file())
+        hits = sorted(_files_named(folder, name))
         if hits:
             return hits[0]
     return None
+
+
+def _files_named(top: Path, name: str) -> list[Path]:
+    """Files called exactly `name` (no pattern: names may hold '[' or '*') in `top` and up to
+    TEXTURE_SEARCH_DEPTH folders below it, looking at TEXTURE_SEARCH_ENTRIES entries at most."""
+    hits: list[Path] = []
+    level, seen = [top], 0
+    for _ in range(TEXTURE_SEARCH_DEPTH + 1):
+        below = []
+        for folder in level:
+            try:
+                with os.scandir(folder) as entries:
+                    for e in entries:
+                        seen += 1
+                        if e.name == name and e.is_file():
+                            hits.append(Path(e.path))
+                        elif e.is_dir(follow_symlinks=False):
+                            below.append(e.path)
+            except OSError:  # unreadable folder: nothing found there
+                continue
+            if seen > TEXTURE_SEARCH_ENTRIES:
+                return hits
+        level = below
+    return hits
 
 
 _MTL_MAPS = ("map_", "bump", "disp", "decal", "refl", "norm")

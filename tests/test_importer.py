@@ -133,6 +133,29 @@ print(json.dumps({{'textured': table.textured.tolist(), 'colour': np.round(table
     assert out["colour"][0][0] > 0.7 > out["colour"][0][1] and out["colour"][1][0] < 0.6
 
 
+
+def test_a_texture_found_by_name_is_searched_within_bounds(tmp_path, monkeypatch):
+    from blender_gen import recipe
+    from blender_gen.recipe import texture_by_name
+
+    lib = tmp_path / "lib"  # a model saved in a large folder: the search must not walk all of it
+    model = lib / "car" / "meshes" / "car.obj"
+    model.parent.mkdir(parents=True)
+    model.write_text("")
+    beside = lib / "car" / "materials" / "textures" / "paint[1].png"  # Gazebo's layout; a glob character
+    beside.parent.mkdir(parents=True)
+    beside.write_bytes(b"png")
+    assert texture_by_name("paint[1].png", model) == beside
+    (model.parent / "paint[1].png").write_bytes(b"png")  # one beside the model comes first
+    assert texture_by_name("paint[1].png", model) == model.parent / "paint[1].png"
+    deep = lib / "car" / "a" / "b" / "c" / "d" / "deep.png"  # four folders below the folder above: too deep
+    deep.parent.mkdir(parents=True)
+    deep.write_bytes(b"png")
+    assert texture_by_name("deep.png", model) is None
+    monkeypatch.setattr(recipe, "TEXTURE_SEARCH_DEPTH", 5)
+    assert texture_by_name("deep.png", model) == deep
+    monkeypatch.setattr(recipe, "TEXTURE_SEARCH_ENTRIES", 2)  # the entry budget stops the walk
+    assert texture_by_name("deep.png", model) is None
 def test_loading_a_blend_never_runs_its_scripts(tmp_path):
     marker = tmp_path / "pwned.txt"
     blend = tmp_path / "evil.blend"
