@@ -72,12 +72,17 @@ def remove_objects(objects: list[bpy.types.Object]) -> None:
         bpy.data.collections.remove(coll)
 
 
+def _file_name(img) -> str:
+    """The file name an image datablock names (its path may be relative to the .blend, '//')."""
+    return Path(bpy.path.abspath(img.filepath)).name
+
+
 def _find_texture(img, model: Path):
     """The image itself, or, where the importer could not find its file, the file of that name that
     `recipe.texture_by_name` finds (the one the recipe's identity hashes)."""
     if img.packed_file is not None or img.source != "FILE" or img.size[0] > 0:
         return img
-    found = texture_by_name(Path(bpy.path.abspath(img.filepath)).name, model)
+    found = texture_by_name(_file_name(img), model)
     return bpy.data.images.load(str(found), check_existing=True) if found else img
 
 
@@ -113,7 +118,7 @@ def _material_info(mat, model: Path) -> dict:
             if src.type == "TEX_IMAGE" and src.image is not None:
                 img = _find_texture(src.image, model)
                 if img.size[0] == 0:
-                    info["missing"] = Path(bpy.path.abspath(img.filepath)).name or img.name
+                    info["missing"] = _file_name(img) or img.name
                 else:
                     w, h = img.size
                     px = np.empty(w * h * img.channels, dtype=np.float32)
