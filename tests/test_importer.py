@@ -70,6 +70,17 @@ def test_a_dataset_from_the_kenney_models_passes_inspect(tmp_path):
     assert info["recipe"]["car_rules"]["name"] == RULES.name and len(info["recipe"]["car_rules"]["sha256"]) == 64
 
 
+@needs_assets
+def test_a_model_file_given_several_times_gets_that_many_shares_of_the_views(tmp_path):
+    # the documented way to weight one's own car against the catalogue: five of six entries
+    out = tmp_path / "weighted"
+    run_gen("intrinsics", "--out", str(out), "--count", "24", "--resolution", "32x16", "--cars", "sedan_a",
+            *[a for _ in range(5) for a in ("--cars", str(KENNEY / "sedan.glb"))], "--car-rules", str(RULES),
+            "--views-per-car", "1", "--seed", "3", "--quiet")
+    cars = [json.loads(x)["car"]["name"] for x in (out / "manifest.jsonl").read_text().splitlines()]
+    assert set(cars) == {"sedan", "sedan_a"} and cars.count("sedan") >= 18, cars  # deduplicated: about 12
+
+
 def test_obj_with_material_rules(tmp_path):
     (tmp_path / "car.mtl").write_text("newmtl paint\nKd 0.8 0.1 0.1\nnewmtl glass\nKd 0.1 0.1 0.2\n")
     v = []
