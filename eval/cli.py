@@ -432,7 +432,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
     import shutil
     from dataclasses import replace
 
-    from .reproduce import BUDGETS, RUNS, Plan, reproduce
+    from .reproduce import BUDGETS, RUNS, Plan, cars_summary, reproduce
 
     if budget.startswith("sanity"):
         for flag, value in (("--cars", cars), ("--car-rules", car_rules), ("--real", real),
@@ -506,7 +506,7 @@ def reproduce_cmd(budget, out, data, steps, resolution, n_intrinsics, real, cars
             click.echo(note, err=True)
     real_text = f"your photos in {photos} ({len(held)} held out)" if photos is not None else f"{b.n_real} real stand-in"
     click.echo(f"  data      {b.n_intrinsics} intrinsics, {real_text}, {b.n_eval} Table-3, {b.n_fid} FID "
-               f"intrinsics at {b.render}" + (f"; cars: {len(cars)} of yours" if cars else ""))
+               f"intrinsics at {b.render}" + (f"; cars: {cars_summary(cars)}" if cars else ""))
     if framing == "auto" and photos is not None:  # match the synthetic cameras to the photos
         from .framing import estimate_framing
 

@@ -312,6 +312,18 @@ class Plan:
         return train + data + report + 1
 
 
+def cars_summary(cars: tuple[str, ...]) -> str:
+    """--cars as the plan shows it: the catalogue selectors, then the model files counted once each,
+    with the shares of the draw where a file is given several times (each entry is one share)."""
+    files = [c for c in cars if "/" in c]  # check_cars resolves model files to absolute paths
+    parts = list(dict.fromkeys(c for c in cars if c not in files))
+    if files:
+        n = len(set(files))
+        parts.append(f"{n} model file{'s' if n > 1 else ''}"
+                     + (f" ({len(files)} shares of the draw)" if len(files) > n else ""))
+    return " + ".join(parts)
+
+
 def _term_with_parent() -> None:
     """In the child before exec: ask Linux for SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""
     import ctypes

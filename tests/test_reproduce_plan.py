@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from eval.reproduce import BUDGETS, Plan
+from eval.reproduce import BUDGETS, Plan, cars_summary
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -181,10 +181,17 @@ def test_own_cars_and_photos_make_the_plan(tmp_path):
                            "--cars", "sedan_a", "--real", str(photos), "--out", str(tmp_path / "o"), "--dry-run"],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    assert f"your photos in {photos.resolve()} (3 held out)" in proc.stdout and "cars: 1 of yours" in proc.stdout
+    assert f"your photos in {photos.resolve()} (3 held out)" in proc.stdout and "cars: sedan_a" in proc.stdout
     bad = subprocess.run([sys.executable, "-m", "eval.cli", "reproduce", "--budget", "smoke", "--real",
                           str(tmp_path / "nope"), "--dry-run"], cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 2 and "neither a count nor a folder of photos" in bad.stderr
+
+
+def test_the_plan_names_the_cars_and_a_file_given_several_times():
+    assert cars_summary(("sedan_a",)) == "sedan_a"
+    five = ("procedural:train",) + ("/m/sedan.glb",) * 5 + ("/m/van.glb",)
+    assert cars_summary(five) == "procedural:train + 2 model files (6 shares of the draw)"
+    assert cars_summary(("/m/a.glb", "/m/b.glb+/m/w.glb")) == "2 model files"
 
 
 def test_an_objective_override_reaches_the_autoencoders_runs_only():
