@@ -163,15 +163,16 @@ def _files_named(top: Path, name: str) -> list[Path]:
         below = []
         for folder in level:
             try:
-                with os.scandir(folder) as entries:
-                    for e in entries:
-                        seen += 1
-                        if e.name == name and e.is_file():
-                            hits.append(Path(e.path))
-                        elif e.is_dir(follow_symlinks=False):
-                            below.append(e.path)
+                with os.scandir(folder) as it:
+                    entries = sorted(it, key=lambda e: e.name)  # the same walk on every file system
             except OSError:  # unreadable folder: nothing found there
                 continue
+            for e in entries:
+                seen += 1
+                if e.name == name and e.is_file():
+                    hits.append(Path(e.path))
+                elif e.is_dir(follow_symlinks=False):
+                    below.append(e.path)
             if seen > TEXTURE_SEARCH_ENTRIES:
                 return hits
         level = below
