@@ -25,7 +25,7 @@ from .envmap import PROCEDURAL_PREFIX, background_lookup, cached_procedural_sky
 from .materials import load_materials
 from .quiet import quiet_stdout
 from .recipe import Recipe, block_seed, sample_seed
-from .cars.rules import MODEL_SUFFIXES, ImportedSpec, imported_specs, load_rules
+from .cars.rules import ImportedSpec, imported_specs, is_model_file, load_rules
 
 import bpy  # noqa: E402  (after the project imports so their errors surface first)
 
@@ -150,7 +150,7 @@ class SampleRenderer:
     # ------------------------------------------------------------------ resources
     def _resolve_cars(self) -> list:
         """Catalogue selectors and model files, in the recipe's order."""
-        files = [c for c in self.recipe.cars if Path(c).suffix.lower() in MODEL_SUFFIXES]
+        files = [c for c in self.recipe.cars if is_model_file(c)]
         names = [c for c in self.recipe.cars if c not in files]
         specs = select_cars(load_catalogue(), ",".join(names)) if names else []
         if files:

@@ -315,7 +315,9 @@ class Plan:
 def cars_summary(cars: tuple[str, ...]) -> str:
     """--cars as the plan shows it: the catalogue selectors, then the model files counted once each,
     with the shares of the draw where a file is given several times (each entry is one share)."""
-    files = [c for c in cars if "/" in c]  # check_cars resolves model files to absolute paths
+    from blender_gen.cars.rules import is_model_file
+
+    files = [c for c in cars if is_model_file(c)]  # the renderer's rule: these are drawn as files
     parts = list(dict.fromkeys(c for c in cars if c not in files))
     if files:
         n = len(set(files))

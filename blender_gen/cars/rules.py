@@ -44,6 +44,13 @@ import numpy as np
 from .spec import CATEGORIES, PARTS
 
 MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".blend")
+
+
+def is_model_file(car: str) -> bool:
+    """Whether a recipe's car entry is a model file (or BODY+WHEELS files), not a catalogue selector."""
+    return Path(car).suffix.lower() in MODEL_SUFFIXES
+
+
 AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 SPLIT_PARTS = {"windows": ("windshield", "window_side", "window_rear"), "bumpers": ("bumper_front", "bumper_rear")}
 _MODEL_KEYS = {"forward", "up", "length", "default_part", "category"}
