@@ -146,17 +146,19 @@ def texture_by_name(name: str, model: Path) -> Path | None:
     """A texture the importer could not open where the model names it (a bare name of a file kept
     elsewhere, a Gazebo model:// URI): the first file of that name (in path order) at most
     TEXTURE_SEARCH_DEPTH folders below the model's folder, else below the folder above it (model
-    libraries keep textures beside the meshes folder: Gazebo's materials/textures/)."""
-    for folder in (model.parent, model.parent.parent):
-        hits = sorted(_files_named(folder, name))
+    libraries keep textures beside the meshes folder: Gazebo's materials/textures/). The second
+    walk skips the model's folder, which the first searched deeper than the second would."""
+    for folder, skip in ((model.parent, None), (model.parent.parent, model.parent)):
+        hits = sorted(_files_named(folder, name, skip))
         if hits:
             return hits[0]
     return None
 
 
-def _files_named(top: Path, name: str) -> list[Path]:
+def _files_named(top: Path, name: str, skip: Path | None = None) -> list[Path]:
     """Files called exactly `name` (no pattern: names may hold '[' or '*') in `top` and up to
-    TEXTURE_SEARCH_DEPTH folders below it, looking at TEXTURE_SEARCH_ENTRIES entries at most."""
+    TEXTURE_SEARCH_DEPTH folders below it, except under `skip`, looking at TEXTURE_SEARCH_ENTRIES
+    entries at most."""
     hits: list[Path] = []
     level, seen = [top], 0
     for _ in range(TEXTURE_SEARCH_DEPTH + 1):
@@ -171,7 +173,7 @@ def _files_named(top: Path, name: str) -> list[Path]:
                 seen += 1
                 if e.name == name and e.is_file():
                     hits.append(Path(e.path))
-                elif e.is_dir(follow_symlinks=False):
+                elif e.is_dir(follow_symlinks=False) and (skip is None or Path(e.path) != skip):
                     below.append(e.path)
             if seen > TEXTURE_SEARCH_ENTRIES:
                 return hits

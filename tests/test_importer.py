@@ -167,6 +167,26 @@ def test_a_texture_found_by_name_is_searched_within_bounds(tmp_path, monkeypatch
     assert texture_by_name("deep.png", model) == deep
     monkeypatch.setattr(recipe, "TEXTURE_SEARCH_ENTRIES", 2)  # the entry budget stops the walk
     assert texture_by_name("deep.png", model) is None
+
+
+def test_the_folder_above_is_searched_without_walking_the_model_folder_again(tmp_path, monkeypatch):
+    from blender_gen import recipe
+    from blender_gen.recipe import texture_by_name
+
+    model = tmp_path / "car" / "meshes" / "car.obj"
+    model.parent.mkdir(parents=True)
+    model.write_text("")
+    for i in range(5):  # a model folder full of files, searched once
+        (model.parent / f"part{i}.obj").write_text("")
+    beside = tmp_path / "car" / "materials" / "textures" / "paint.png"
+    beside.parent.mkdir(parents=True)
+    beside.write_bytes(b"png")
+    # 'materials', 'meshes', 'textures', then the texture: found within 5 entries only if the
+    # second walk does not count the model folder's six files again
+    monkeypatch.setattr(recipe, "TEXTURE_SEARCH_ENTRIES", 5)
+    assert texture_by_name("paint.png", model) == beside
+
+
 def test_loading_a_blend_never_runs_its_scripts(tmp_path):
     marker = tmp_path / "pwned.txt"
     blend = tmp_path / "evil.blend"
