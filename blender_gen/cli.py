@@ -156,7 +156,8 @@ def _common_options(fn):
                      help="Catalogue selectors (procedural, procedural:train, procedural:heldout, a category, "
                           "model names; comma-separated or repeated), procedural:random[:CATEGORY][@SEED] (a new "
                           "seeded car for every block of views, never like a held-out model) or model files "
-                          "with --car-rules."),
+                          "with --car-rules. Each block of --views-per-car views draws one entry: a model file "
+                          "given N times gets N shares of the views."),
         click.option("--car-rules", type=click.Path(dir_okay=False), default=None,
                      help="TOML rules mapping a model file's objects/materials/palette regions to parts, or "
                           "'auto' (parts inferred per model: see `iae-gen label-parts`)."),

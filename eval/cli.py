@@ -393,7 +393,8 @@ _RUN_NAMES = [n for n, _, _ in _RUNS]
                    "train on them and FID/KID compare against them; a few are held out for the report's gallery.")
 @click.option("--cars", "cars", multiple=True, metavar="SEL",
               help="Your cars for every generated set (as iae-gen --cars: catalogue names, model files, folders, "
-                   "globs; repeatable): training intrinsics, the Table-3 set in unseen poses, the FID intrinsics.")
+                   "globs; repeatable): training intrinsics, the Table-3 set in unseen poses, the FID intrinsics. "
+                   "A model file given N times gets N shares of the views.")
 @click.option("--car-rules", default=None, help="With model files in --cars: a rules TOML, or 'auto' (inferred parts).")
 @click.option("--gallery", type=click.IntRange(1, 64), default=8, show_default=True,
               help="With --real PHOTOS: photos held out of training and shown decomposed in the report.")
